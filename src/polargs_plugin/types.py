@@ -1,0 +1,178 @@
+"""The data contracts shared by every module (DESIGN.md §3).
+
+Conventions, binding everywhere:
+
+- Camera frame OpenCV (x right, y down, z forward). ``K`` is 3x3 with pixel centres at +0.5:
+  pixel (u, v) (column u, row v) has its centre at (u + 0.5, v + 0.5).
+  ``world_to_camera`` is a 4x4 (not transposed): x_cam = R @ x_world + t.
+- Images are float32, channel-first (C, H, W), linear, in [0, 1], RGB order.
+- Stokes are (3, C, H, W) = (s0, s1, s2); s0 = (I0 + I45 + I90 + I135) / 2 is the full intensity,
+  s1 = I0 - I90, s2 = I45 - I135. The training colour is s0 / 2.
+- Depth is camera z (not ray length). Normals are unit camera-frame vectors facing the camera
+  (n . z < 0).
+- Cameras are float64 so that readers round-trip them to 1e-6; cast when rendering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+
+import torch
+from torch import Tensor
+
+__all__ = ["View", "PolarMaps", "RenderOut", "GaussianState", "NewGaussians"]
+
+
+@dataclass
+class View:
+    """One polarimetric view: camera plus Stokes images.
+
+    Attributes:
+        name: unique view name (usually the file stem).
+        K: (3, 3) float64 intrinsics, pixel centres at +0.5.
+        world_to_camera: (4, 4) float64 rigid transform, OpenCV camera frame.
+        stokes: (3, C, H, W) float32 linear Stokes (s0, s1, s2), C = 1 (mono) or 3 (RGB).
+        mask: optional (1, H, W) bool object mask.
+        normal_gt: optional (3, H, W) float32 ground-truth camera-frame normals (0 outside mask).
+        depth_gt: optional (1, H, W) float32 ground-truth camera-z depth (0 outside mask).
+        source: where the view came from (a file or folder), for error messages.
+    """
+
+    name: str
+    K: Tensor
+    world_to_camera: Tensor
+    stokes: Tensor
+    mask: Tensor | None = None
+    normal_gt: Tensor | None = None
+    depth_gt: Tensor | None = None
+    source: str = ""
+
+    @property
+    def height(self) -> int:
+        return int(self.stokes.shape[-2])
+
+    @property
+    def width(self) -> int:
+        return int(self.stokes.shape[-1])
+
+    @property
+    def image(self) -> Tensor:
+        """(C, H, W) training colour s0 / 2 (DESIGN.md)."""
+        return self.stokes[0] / 2
+
+    @property
+    def R(self) -> Tensor:
+        """(3, 3) world-to-camera rotation."""
+        return self.world_to_camera[:3, :3]
+
+    @property
+    def t(self) -> Tensor:
+        """(3,) world-to-camera translation."""
+        return self.world_to_camera[:3, 3]
+
+    @property
+    def camera_center(self) -> Tensor:
+        """(3,) camera centre in world coordinates, -R^T t."""
+        return -self.R.T @ self.t
+
+    def to(self, device: torch.device | str) -> "View":
+        """A copy with every tensor on ``device`` (cameras keep float64)."""
+        moved = {
+            f.name: getattr(self, f.name).to(device)
+            for f in fields(self)
+            if isinstance(getattr(self, f.name), Tensor)
+        }
+        return replace(self, **moved)
+
+
+@dataclass
+class PolarMaps:
+    """Per-view maps computed once by ``PolarHooks.preprocess`` (all (.., H, W), float32).
+
+    Attributes:
+        aolp: (1, H, W) AoLP in [0, pi) of the channel-mean Stokes, DESIGN.md convention.
+        dolp: (1, H, W) DoLP in [0, 1] of the channel-mean Stokes.
+        intensity: (C, H, W) training colour s0 / 2.
+        specular_mask: (1, H, W) bool, reflective (specular) pixels.
+        overexposed_mask: (1, H, W) bool, overexposed pixels.
+        pri: (1, H, W) polarimetric reference intensity.
+        i_diff: (C, H, W) specular-free colour target I_diff (valid inside specular_mask).
+        i_chro: (C, H, W) chromaticity target I_chro (valid inside overexposed_mask).
+        extras: anything else a module caches (for example the DoLP weight omega).
+    """
+
+    aolp: Tensor
+    dolp: Tensor
+    intensity: Tensor
+    specular_mask: Tensor | None = None
+    overexposed_mask: Tensor | None = None
+    pri: Tensor | None = None
+    i_diff: Tensor | None = None
+    i_chro: Tensor | None = None
+    extras: dict[str, Tensor] = field(default_factory=dict)
+
+
+@dataclass
+class RenderOut:
+    """What a renderer returns for one view (the adapter contract).
+
+    Attributes:
+        color: (3, H, W) rendered colour.
+        depth: (1, H, W) expected camera-z depth normalised by alpha (0 where alpha = 0).
+        normal: (3, H, W) camera-frame normal, facing the camera (not renormalised).
+        alpha: (1, H, W) accumulated opacity.
+        median_depth: optional (1, H, W) depth where transmittance crosses 0.5.
+        means2d: optional (N, 2) screen-space means whose .grad drives densification.
+        radii: optional (N,) screen-space radius in pixels (0 = not visible).
+    """
+
+    color: Tensor
+    depth: Tensor
+    normal: Tensor
+    alpha: Tensor
+    median_depth: Tensor | None = None
+    means2d: Tensor | None = None
+    radii: Tensor | None = None
+
+
+@dataclass
+class GaussianState:
+    """A trainer's Gaussians as the hooks see them (activated values, autograd-connected).
+
+    Attributes:
+        means: (N, 3) world positions.
+        quats: (N, 4) rotations, wxyz (not necessarily normalised).
+        scales: (N, 3) positive scales (after exp).
+        opacities: (N,) in (0, 1) (after sigmoid).
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+
+    @property
+    def num(self) -> int:
+        return int(self.means.shape[0])
+
+
+@dataclass
+class NewGaussians:
+    """Gaussians to append, as returned by ``PolarHooks.densify`` (activated values).
+
+    Attributes:
+        means: (M, 3) world positions.
+        quats: (M, 4) wxyz rotations whose shortest axis is the seeding normal.
+        scales: (M, 3) positive scales.
+        colors: (M, 3) RGB in [0, 1].
+        opacities: (M,) in (0, 1).
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    colors: Tensor
+    opacities: Tensor
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
