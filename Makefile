@@ -1,0 +1,22 @@
+# The two newcomer commands (README.md): `make demo` and `make test`. Each sets itself up.
+PY := .venv/bin/python
+SCENE ?= glossy_plane_sphere
+OUT ?= out/demo
+
+.PHONY: setup demo test bench
+
+setup:
+	@bash scripts/setup_env.sh
+
+demo: setup
+	$(PY) -m polargs_plugin.cli generate --scene $(SCENE) --out $(OUT) --pictures
+
+# Two pytest workers on two cores; each worker single-threaded so they do not fight.
+test: setup
+	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -p no:cacheprovider
+
+bench: setup
+	$(PY) bench/rasterizer.py
+	$(PY) bench/patchmatch.py
+	$(PY) bench/preprocess.py
+	$(PY) bench/plugin_overhead.py

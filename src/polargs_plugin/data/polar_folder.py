@@ -1,0 +1,485 @@
+"""A plain folder of polarization captures with a COLMAP model: reader and writer.
+
+Layout (``images/`` may be left out and its content put in the folder itself)::
+
+    images/<name>_0.png  <name>_45.png  <name>_90.png  <name>_135.png     four-angle images
+      or images/0/<name>.png  images/45/  images/90/  images/135/         one folder per angle
+      or raw/<name>.png (or .tif, .npy)                                    DoFP raw mosaics
+    masks/<name>.png                                                       optional object masks
+    sparse/0/cameras.txt images.txt  (or .bin; also sparse/ or the folder)  COLMAP model
+
+Angle images may be 8/16-bit PNG/TIFF (grey or RGB; an alpha channel is dropped) or float EXR.
+Raw mosaics are 2-D 8/16-bit images or ``.npy`` arrays, demosaiced by
+:func:`polargs_plugin.optics.mosaic.demosaic_polar` (``pattern`` "mono" or "rgb").
+
+Conversions made by :func:`read_polar_folder`:
+
+- Intensities: integer images / (2^bit_depth - 1) (default bit depth: that of the dtype), BGR ->
+  RGB; Stokes by the closed form s0 = (I0+I45+I90+I135)/2, s1 = I0 - I90, s2 = I45 - I135 (no
+  factor: s0 is the full intensity). AoLP direction: none, provided the polarizer angles are
+  measured counter-clockwise on screen from image +x, as on Sony DoFP sensors.
+- Cameras: COLMAP world-to-camera (qvec, tvec) in OpenCV axes; COLMAP's pixel centres are at
+  +0.5 (upper-left pixel centre (0.5, 0.5)) like ours, so K is taken unchanged. Camera models
+  with distortion are accepted only when every distortion coefficient is zero.
+- Image to camera matching: by file stem of the COLMAP image name; a trailing ``_0``, ``_45``,
+  ``_90`` or ``_135`` is ignored, so a model built on the 0-degree images also fits.
+- Without a model and with ``sfm=True`` (the ``sfm`` extra, pycolmap), SfM runs on sRGB 8-bit
+  pictures of s0 / 2 and writes its model (text) to ``sparse/0``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import struct
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from polargs_plugin.data import cameras as cam
+from polargs_plugin.data.imageio_utils import (
+    UINT_MAX,
+    linear_to_srgb,
+    read_exr,
+    read_image,
+    read_npy,
+    to_hwc,
+    write_png,
+)
+from polargs_plugin.io import PolarInputError, atomic_write
+from polargs_plugin.optics.mosaic import demosaic_polar, mosaic_from_intensities
+from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, intensities_from_stokes, stokes_from_intensities
+from polargs_plugin.types import View
+
+__all__ = [
+    "MOSAIC_PATTERNS",
+    "ColmapCamera",
+    "read_colmap_model",
+    "write_colmap_text",
+    "find_colmap_model",
+    "run_sfm",
+    "read_polar_folder",
+    "write_polar_folder",
+]
+
+MOSAIC_PATTERNS = ("mono", "rgb")
+"""Raw mosaic layouts understood by ``demosaic_polar`` (Sony IMX250MZR / IMX250MYR)."""
+
+_IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
+_RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
+_ANGLE_NAMES = tuple(str(a) for a in POLARIZER_ANGLES_DEG)
+
+# COLMAP camera models: id -> (name, number of params, number of leading pinhole params).
+# The pinhole params are f, cx, cy (1 focal) or fx, fy, cx, cy (2 focals); the rest is distortion.
+_COLMAP_MODELS = {
+    0: ("SIMPLE_PINHOLE", 3),
+    1: ("PINHOLE", 4),
+    2: ("SIMPLE_RADIAL", 4),
+    3: ("RADIAL", 5),
+    4: ("OPENCV", 8),
+    5: ("OPENCV_FISHEYE", 8),
+    6: ("FULL_OPENCV", 12),
+    7: ("FOV", 5),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4),
+    9: ("RADIAL_FISHEYE", 5),
+    10: ("THIN_PRISM_FISHEYE", 12),
+}
+_SINGLE_FOCAL = {"SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "FOV"}
+_MODEL_PARAMS = dict(_COLMAP_MODELS.values())
+
+
+@dataclass
+class ColmapCamera:
+    """One registered COLMAP image: K (3, 3), world_to_camera (4, 4), image size."""
+
+    K: np.ndarray
+    world_to_camera: np.ndarray
+    width: int
+    height: int
+
+
+def _intrinsics(model: str, params: np.ndarray, source: str) -> np.ndarray:
+    if model not in _MODEL_PARAMS or len(params) != _MODEL_PARAMS[model]:
+        raise PolarInputError(source, f"camera model {model} with {len(params)} parameters is not supported")
+    single = model in _SINGLE_FOCAL
+    fx, fy, cx, cy = (params[0], params[0], params[1], params[2]) if single else params[:4]
+    distortion = params[3:] if single else params[4:]
+    if np.any(np.abs(distortion) > 0):
+        raise PolarInputError(
+            source, f"camera model {model} has non-zero distortion {distortion.tolist()}; undistort first (colmap image_undistorter)"
+        )
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
+
+
+def _read_text_model(model_dir: Path) -> tuple[dict, list]:
+    """cameras.txt, images.txt -> ({camera_id: (model, W, H, params)}, [(name, qvec, tvec, camera_id)])."""
+
+    def rows(path: Path) -> list[list[str]]:
+        if not path.is_file():
+            raise PolarInputError(path, "file not found")
+        return [line.split() for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
+
+    cameras = {}
+    for row in rows(model_dir / "cameras.txt"):
+        try:
+            cameras[int(row[0])] = (row[1], int(row[2]), int(row[3]), np.array(row[4:], dtype=np.float64))
+        except (IndexError, ValueError):
+            raise PolarInputError(model_dir / "cameras.txt", f"malformed camera line {' '.join(row)!r}") from None
+    images = []
+    # images.txt alternates image lines (10 fields) and points2D lines (3 fields per point, or
+    # empty and dropped above), so the image lines are those with exactly 10 fields.
+    for row in rows(model_dir / "images.txt"):
+        if len(row) == 10 and row[0].isdigit():
+            try:
+                images.append((row[9], np.array(row[1:5], float), np.array(row[5:8], float), int(row[8])))
+            except ValueError:
+                raise PolarInputError(model_dir / "images.txt", f"malformed image line {' '.join(row)!r}") from None
+    return cameras, images
+
+
+def _read_binary_model(model_dir: Path) -> tuple[dict, list]:
+    """cameras.bin, images.bin (COLMAP's little-endian binary model) -> as :func:`_read_text_model`."""
+    cameras = {}
+    path = model_dir / "cameras.bin"
+    try:
+        with open(path, "rb") as f:
+            (count,) = struct.unpack("<Q", f.read(8))
+            for _ in range(count):
+                camera_id, model_id, width, height = struct.unpack("<iiQQ", f.read(24))
+                if model_id not in _COLMAP_MODELS:
+                    raise PolarInputError(path, f"unknown camera model id {model_id}")
+                name, num_params = _COLMAP_MODELS[model_id]
+                params = np.array(struct.unpack(f"<{num_params}d", f.read(8 * num_params)))
+                cameras[camera_id] = (name, width, height, params)
+        images = []
+        path = model_dir / "images.bin"
+        with open(path, "rb") as f:
+            (count,) = struct.unpack("<Q", f.read(8))
+            for _ in range(count):
+                values = struct.unpack("<i7di", f.read(64))
+                name = b""
+                while (char := f.read(1)) not in (b"\x00", b""):
+                    name += char
+                (num_points,) = struct.unpack("<Q", f.read(8))
+                f.seek(24 * num_points, os.SEEK_CUR)  # x, y (double) and point3D id (int64) each
+                images.append((name.decode(), np.array(values[1:5]), np.array(values[5:8]), values[8]))
+    except FileNotFoundError:
+        raise PolarInputError(path, "file not found") from None
+    except struct.error:
+        raise PolarInputError(path, "truncated or malformed COLMAP binary file") from None
+    return cameras, images
+
+
+def read_colmap_model(model_dir: str | os.PathLike) -> dict[str, ColmapCamera]:
+    """Parse a COLMAP sparse model (text or binary, no pycolmap needed).
+
+    Returns:
+        {image name as written in the model: ColmapCamera}.
+    """
+    model_dir = Path(model_dir)
+    text = (model_dir / "cameras.txt").is_file()
+    cameras, images = _read_text_model(model_dir) if text else _read_binary_model(model_dir)
+    source = model_dir / ("images.txt" if text else "images.bin")
+    result = {}
+    for name, qvec, tvec, camera_id in images:
+        if camera_id not in cameras:
+            raise PolarInputError(source, f"image {name} refers to unknown camera {camera_id}")
+        model, width, height, params = cameras[camera_id]
+        K = _intrinsics(model, params, f"{model_dir}[camera {camera_id}]")
+        if not (np.isfinite(qvec).all() and np.linalg.norm(qvec) > 0):
+            raise PolarInputError(source, f"image {name}: invalid quaternion {qvec.tolist()}")
+        w2c = np.eye(4)
+        w2c[:3, :3] = cam.qvec_to_rotmat(qvec)
+        w2c[:3, 3] = tvec
+        cam.validate_camera(K, w2c, f"{source}[{name}]")
+        result[name] = ColmapCamera(K, w2c, int(width), int(height))
+    return result
+
+
+def _numbers(values: np.ndarray) -> list[str]:
+    return [repr(float(v)) for v in values]  # repr: shortest text that parses back exactly
+
+
+def write_colmap_text(model_dir: str | os.PathLike, cameras: dict[str, ColmapCamera]) -> Path:
+    """Write a COLMAP text model (PINHOLE cameras, one per image, no 3D points), atomically per file."""
+    model_dir = Path(model_dir)
+    camera_lines, image_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], ["# Image list"]
+    for index, (name, camera) in enumerate(cameras.items(), start=1):
+        if abs(camera.K[0, 1]) > 1e-12:
+            raise PolarInputError(name, "COLMAP cameras cannot hold a skewed K")
+        pinhole = camera.K[[0, 1, 0, 1], [0, 1, 2, 2]]  # fx, fy, cx, cy
+        camera_lines.append(" ".join([str(index), "PINHOLE", str(camera.width), str(camera.height), *_numbers(pinhole)]))
+        qvec = cam.rotmat_to_qvec(camera.world_to_camera[:3, :3])
+        tvec = camera.world_to_camera[:3, 3]
+        image_lines.append(" ".join([str(index), *_numbers(qvec), *_numbers(tvec), str(index), name]))
+        image_lines.append("")  # no 2D points
+    for filename, lines in (("cameras.txt", camera_lines), ("images.txt", image_lines), ("points3D.txt", ["# 3D point list"])):
+        with atomic_write(model_dir / filename) as f:
+            f.write("\n".join(lines) + "\n")
+    return model_dir
+
+
+def find_colmap_model(folder: str | os.PathLike) -> Path | None:
+    """The first of ``sparse/0``, ``sparse``, ``.`` holding cameras + images (.txt or .bin)."""
+    folder = Path(folder)
+    for candidate in (folder / "sparse" / "0", folder / "sparse", folder):
+        if any((candidate / f"cameras{ext}").is_file() and (candidate / f"images{ext}").is_file() for ext in (".txt", ".bin")):
+            return candidate
+    return None
+
+
+def run_sfm(pictures: dict[str, np.ndarray], model_dir: str | os.PathLike) -> Path:
+    """Structure from motion with pycolmap (the ``sfm`` extra) on 8-bit pictures.
+
+    Args:
+        pictures: {name: (H, W, 3) or (H, W, 1) uint8 RGB picture}; all share one pinhole camera.
+        model_dir: where the largest reconstruction is written as a text model.
+
+    Returns:
+        ``model_dir``.
+    """
+    import pycolmap  # optional dependency, only needed here
+
+    model_dir = Path(model_dir)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for name, picture in pictures.items():
+            write_png(tmp / "images" / f"{name}.png", picture, 8)
+        database = tmp / "database.db"
+        pycolmap.extract_features(
+            database,
+            tmp / "images",
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=pycolmap.ImageReaderOptions(camera_model="SIMPLE_PINHOLE"),
+            device=pycolmap.Device.cpu,
+        )
+        pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+        reconstructions = pycolmap.incremental_mapping(database, tmp / "images", tmp / "sparse")
+        if not reconstructions:
+            raise PolarInputError(model_dir, f"SfM registered no images out of {len(pictures)}")
+        best = max(reconstructions.values(), key=lambda r: r.num_reg_images())
+        staging = tmp / "model"
+        staging.mkdir()
+        best.write_text(str(staging))
+        model_dir.parent.mkdir(parents=True, exist_ok=True)
+        if model_dir.exists():
+            raise PolarInputError(model_dir, "already exists; refusing to overwrite a COLMAP model")
+        shutil.move(str(staging), str(model_dir))  # a whole directory appears at once
+    return model_dir
+
+
+def _read_angle_image(path: Path, bit_depth: int | None) -> tuple[np.ndarray, np.dtype]:
+    if path.suffix.lower() == ".exr":
+        array = read_exr(path)
+        return array, array.dtype
+    raw = read_image(path)
+    scale = UINT_MAX[raw.dtype] if bit_depth is None else 2**bit_depth - 1
+    if raw.max() > scale:
+        raise PolarInputError(path, f"values up to {raw.max()} exceed the {bit_depth}-bit range")
+    array = raw[..., None] if raw.ndim == 2 else raw[..., :3]
+    return array.astype(np.float32) / np.float32(scale), raw.dtype
+
+
+def _files_by_stem(directory: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
+    if not directory.is_dir():
+        return {}
+    return {p.stem: p for p in sorted(directory.iterdir()) if p.suffix.lower() in suffixes and not p.name.startswith(".")}
+
+
+def _angle_sets(root: Path) -> dict[str, list[Path]]:
+    """{name: [path at 0, 45, 90, 135]} from per-angle folders or ``<name>_<angle>`` files."""
+    folders = [root / a for a in _ANGLE_NAMES]
+    if any(f.is_dir() for f in folders):
+        per_angle = [_files_by_stem(f, _IMAGE_SUFFIXES) for f in folders]
+        names = sorted(set().union(*per_angle))
+        expected = [(folder, files) for folder, files in zip(folders, per_angle)]
+    else:
+        files = _files_by_stem(root, _IMAGE_SUFFIXES)
+        per_angle = [{} for _ in _ANGLE_NAMES]
+        for stem, path in files.items():
+            base, _, angle = stem.rpartition("_")
+            if base and angle in _ANGLE_NAMES:
+                per_angle[_ANGLE_NAMES.index(angle)][base] = path
+        names = sorted(set().union(*per_angle))
+        expected = [(root, files) for files in per_angle]
+    sets = {}
+    for name in names:
+        paths = [files.get(name) for _, files in expected]
+        for (folder, _), angle, path in zip(expected, _ANGLE_NAMES, paths):
+            if path is None:
+                missing = folder / f"{name}.*" if folder.name == angle else folder / f"{name}_{angle}.*"
+                raise PolarInputError(missing, f"missing the {angle}-degree image of view {name}")
+        sets[name] = paths
+    return sets
+
+
+def _image_root(folder: Path) -> Path:
+    return folder / "images" if (folder / "images").is_dir() else folder
+
+
+def _stokes_from_angles(paths: list[Path], bit_depth: int | None) -> torch.Tensor:
+    images = [_read_angle_image(p, bit_depth) for p in paths]
+    for (array, dtype), path in zip(images, paths):
+        if array.shape != images[0][0].shape or dtype != images[0][1]:
+            raise PolarInputError(
+                path, f"{array.shape[:2]} {dtype} image differs from {paths[0].name} ({images[0][0].shape[:2]} {images[0][1]})"
+            )
+    intensities = np.stack([array.transpose(2, 0, 1) for array, _ in images])
+    if not intensities.max() > 0:
+        raise PolarInputError(paths[0], "all-dark view: every angle image is zero")
+    return stokes_from_intensities(torch.from_numpy(intensities))
+
+
+def _stokes_from_raw(path: Path, pattern: str, bit_depth: int | None) -> torch.Tensor:
+    raw = read_npy(path) if path.suffix.lower() == ".npy" else read_image(path)
+    if not raw.max() > 0:
+        raise PolarInputError(path, "all-dark raw mosaic")
+    intensities = demosaic_polar(raw, pattern=pattern, bit_depth=bit_depth, source=str(path))
+    return stokes_from_intensities(intensities)
+
+
+def _camera_for(name: str, model: dict[str, ColmapCamera]) -> ColmapCamera | None:
+    by_stem = {}
+    for image_name, camera in model.items():
+        stem = Path(image_name).stem
+        base, _, angle = stem.rpartition("_")
+        by_stem.setdefault(stem, camera)
+        if base and angle in _ANGLE_NAMES:
+            by_stem.setdefault(base, camera)
+    return by_stem.get(name)
+
+
+def read_polar_folder(
+    folder: str | os.PathLike,
+    pattern: str | None = None,
+    bit_depth: int | None = None,
+    sfm: bool = False,
+) -> list[View]:
+    """Read four-angle images or raw mosaics plus a COLMAP model into views.
+
+    Args:
+        folder: the capture folder (layout in the module docstring).
+        pattern: mosaic layout for ``raw/`` ("mono" or "rgb"); required when reading mosaics.
+        bit_depth: significant bits of integer images (e.g. 12 for 12-bit data in 16-bit files);
+            None uses the full range of the file's dtype.
+        sfm: when no COLMAP model exists, run pycolmap SfM and write ``sparse/0``.
+
+    Returns:
+        One :class:`View` per registered image (sorted by name); images that the model does
+        not register are skipped with a warning. stokes (3, C, H, W), C = 1 or 3.
+    """
+    folder = Path(folder)
+    root = _image_root(folder)
+    angle_sets = _angle_sets(root)
+    raw_files = {} if angle_sets else _files_by_stem(folder / "raw", _RAW_SUFFIXES)
+    if not angle_sets and not raw_files:
+        raise PolarInputError(
+            folder, "no polarization images: expected <name>_0/45/90/135 files, 0/ 45/ 90/ 135/ folders, or raw/ mosaics"
+        )
+    if raw_files and pattern not in MOSAIC_PATTERNS:
+        raise PolarInputError(folder / "raw", f"unknown mosaic pattern {pattern!r}; pass pattern= one of {MOSAIC_PATTERNS}")
+    stokes = {name: _stokes_from_angles(paths, bit_depth) for name, paths in angle_sets.items()}
+    stokes.update({name: _stokes_from_raw(path, pattern, bit_depth) for name, path in raw_files.items()})
+
+    model_dir = find_colmap_model(folder)
+    if model_dir is None:
+        if not sfm:
+            raise PolarInputError(folder, "no COLMAP model (sparse/0/cameras.txt|.bin, images.txt|.bin); pass sfm=True to run SfM")
+        pictures = {name: np.rint(linear_to_srgb(to_hwc(s[0] / 2)) * 255).astype(np.uint8) for name, s in stokes.items()}
+        model_dir = run_sfm(pictures, folder / "sparse" / "0")
+    model = read_colmap_model(model_dir)
+
+    mask_paths = _files_by_stem(folder / "masks", (".png", ".tif", ".tiff"))
+    views, unregistered = [], []
+    for name, view_stokes in stokes.items():
+        camera = _camera_for(name, model)
+        if camera is None:
+            unregistered.append(name)
+            continue
+        height, width = view_stokes.shape[-2:]
+        if (camera.width, camera.height) != (width, height):
+            raise PolarInputError(model_dir, f"camera of {name} is {camera.width}x{camera.height}, images are {width}x{height}")
+        mask = None
+        if name in mask_paths:
+            values = read_image(mask_paths[name])
+            if values.shape[:2] != (height, width):
+                raise PolarInputError(mask_paths[name], f"size {values.shape[:2]} differs from the images {(height, width)}")
+            first = values if values.ndim == 2 else values[..., 0]
+            mask = torch.from_numpy(first > UINT_MAX[values.dtype] / 2)[None]
+        views.append(
+            View(
+                name=name,
+                K=torch.from_numpy(camera.K.copy()),
+                world_to_camera=torch.from_numpy(camera.world_to_camera.copy()),
+                stokes=view_stokes.float(),
+                mask=mask,
+                source=str(folder),
+            )
+        )
+    if unregistered:
+        warnings.warn(f"{folder}: {len(unregistered)} views have no camera in {model_dir}: {unregistered[:10]}", stacklevel=2)
+    if not views:
+        raise PolarInputError(model_dir, "registers none of the images")
+    return views
+
+
+def write_polar_folder(
+    views: list[View],
+    folder: str | os.PathLike,
+    mode: str = "angles",
+    pattern: str = "rgb",
+    bit_depth: int = 16,
+    per_angle_folders: bool = False,
+    angle_images: list[torch.Tensor | None] | None = None,
+) -> Path:
+    """Write views as a polar folder with a COLMAP text model in ``sparse/0``; atomic per file.
+
+    Args:
+        views: views to write (names are kept; intensities I(beta) from Malus must lie in [0, 1]).
+        folder: output folder.
+        mode: "angles" (four images per view) or "raw" (one mosaic per view in ``raw/``).
+        pattern: mosaic layout for ``mode="raw"`` ("mono" needs C = 1, "rgb" C = 3).
+        bit_depth: 8 or 16 bits per PNG sample. 16-bit holds 8-bit-quantised data exactly
+            (65535 = 257 x 255).
+        per_angle_folders: ``images/0/<name>.png``... instead of ``images/<name>_0.png``.
+        angle_images: optional per-view (4, C, H, W) images in [0, 1] to write as they are
+            (e.g. ``SyntheticScene.angle_images``); views without one (None) get the Malus images
+            of their Stokes, clipped to [0, 1]. Four measured images hold one more degree of
+            freedom than (s0, s1, s2), so only the measured ones reproduce them exactly.
+
+    Returns:
+        ``folder``.
+    """
+    if mode not in ("angles", "raw"):
+        raise ValueError(f"mode must be 'angles' or 'raw', got {mode!r}")
+    if mode == "raw" and pattern not in MOSAIC_PATTERNS:
+        raise ValueError(f"pattern must be one of {MOSAIC_PATTERNS}, got {pattern!r}")
+    folder = Path(folder)
+    model = {}
+    for index, view in enumerate(views):
+        given = angle_images[index] if angle_images is not None else None
+        if given is None:
+            # Malus; clipping only matters where the views' Stokes come from saturated images
+            intensities = intensities_from_stokes(view.stokes.detach().cpu().double()).clamp(0, 1)
+        else:
+            intensities = given.detach().cpu().double()
+            if intensities.shape != (4, *view.stokes.shape[1:]):
+                raise ValueError(f"angle_images[{index}] has shape {tuple(intensities.shape)}, expected (4, C, H, W)")
+        if mode == "raw":
+            raw = mosaic_from_intensities(intensities, pattern)
+            write_png(folder / "raw" / f"{view.name}.png", np.asarray(raw, dtype=np.float64), bit_depth)
+        else:
+            for angle, image in zip(_ANGLE_NAMES, intensities):
+                name = f"{angle}/{view.name}.png" if per_angle_folders else f"{view.name}_{angle}.png"
+                write_png(folder / "images" / name, to_hwc(image), bit_depth)
+        if view.mask is not None:
+            write_png(folder / "masks" / f"{view.name}.png", view.mask[0].cpu().numpy().astype(np.uint8) * 255, 8)
+        model[f"{view.name}.png"] = ColmapCamera(
+            view.K.double().cpu().numpy(), view.world_to_camera.double().cpu().numpy(), view.width, view.height
+        )
+    write_colmap_text(folder / "sparse" / "0", model)
+    return folder

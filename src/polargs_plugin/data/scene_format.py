@@ -1,0 +1,405 @@
+"""The project's own polarimetric scene folder: writer and validating reader.
+
+Layout (docs/dataset-format.md has the full description)::
+
+    <folder>/
+      cameras.json                  format, version, width, height, bit depth, per view K + world_to_camera
+      scene.json                    generator meta (free-form JSON)
+      polar/<view>_<angle>.png      RGB angle images, angle in 000 045 090 135; 8- or 16-bit
+      masks/<view>.png              8-bit object mask (255 = object)
+      normals/<view>.npy            float32 (H, W, 3) camera-frame GT normals
+      depth/<view>.npy              float32 (H, W) camera-z GT depth
+      diffuse/<view>.npy            float32 (H, W, 3) GT diffuse colour (s0 / 2 units)
+      specular/<view>.npy           float32 (H, W, 3) GT specular colour
+      highlights/<view>.png         8-bit highlight mask
+      overexposed/<view>.png        8-bit overexposure mask
+      mesh.ply                      GT mesh, world frame
+
+Every file is written atomically and ``cameras.json`` is written last, so a folder that has it
+is complete. Readers validate everything and raise :class:`~polargs_plugin.io.PolarInputError`
+naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import torch
+from torch import Tensor
+
+from polargs_plugin.data.synthetic import SyntheticScene
+from polargs_plugin.io import PolarInputError, atomic_path, atomic_write
+from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, stokes_from_intensities
+from polargs_plugin.types import View
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "CAMERAS_FILE",
+    "write_scene",
+    "read_scene_folder",
+    "read_scene",
+    "read_gt_mesh",
+    "is_scene_folder",
+]
+
+FORMAT_NAME = "polargs-scene"
+FORMAT_VERSION = 1
+CAMERAS_FILE = "cameras.json"
+META_FILE = "scene.json"
+MESH_FILE = "mesh.ply"
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+_ROTATION_TOL = 1e-5
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing.
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """Write an (H, W) or (H, W, 3) RGB uint8/uint16 array as PNG, atomically."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"{path}: cv2.imwrite failed")
+
+
+def _write_npy(path: Path, array: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        np.save(tmp, np.ascontiguousarray(array, dtype=np.float32))
+
+
+def _mask_png(mask: Tensor) -> np.ndarray:
+    return mask[0].numpy().astype(np.uint8) * 255
+
+
+def _hwc(image: Tensor) -> np.ndarray:
+    return image.detach().cpu().permute(1, 2, 0).numpy()
+
+
+def _angle_path(folder: Path, view_name: str, angle: int) -> Path:
+    return folder / "polar" / f"{view_name}_{angle:03d}.png"
+
+
+def write_scene(scene: SyntheticScene, folder: str | Path) -> Path:
+    """Write a :class:`SyntheticScene` as a scene folder (each file atomically, cameras last).
+
+    Angle images are stored at ``scene.meta["quantize_bits"]`` bits (8 or 16; 16 when absent), so
+    quantised images round-trip exactly.
+
+    Args:
+        scene: the scene to write.
+        folder: output folder (created; existing files with the same names are replaced).
+
+    Returns:
+        the folder path.
+    """
+    folder = Path(folder)
+    bits = int(scene.meta.get("quantize_bits", 16))
+    if bits not in (8, 16):
+        raise ValueError(f"quantize_bits must be 8 or 16 to write PNG angle images, got {bits}")
+    dtype, levels = (np.uint8, 255) if bits == 8 else (np.uint16, 65535)
+    if not scene.views:
+        raise ValueError("the scene has no views")
+    height, width = scene.views[0].height, scene.views[0].width
+    cameras = []
+    for index, view in enumerate(scene.views):
+        if (view.height, view.width) != (height, width):
+            raise ValueError(f"view {view.name} is {view.width}x{view.height}, expected {width}x{height}")
+        for angle, image in zip(POLARIZER_ANGLES_DEG, scene.angle_images[index]):
+            pixels = np.round(np.clip(_hwc(image), 0.0, 1.0) * levels).astype(dtype)
+            _write_png(_angle_path(folder, view.name, angle), pixels)
+        if view.mask is not None:
+            _write_png(folder / "masks" / f"{view.name}.png", _mask_png(view.mask))
+        if view.normal_gt is not None:
+            _write_npy(folder / "normals" / f"{view.name}.npy", _hwc(view.normal_gt))
+        if view.depth_gt is not None:
+            _write_npy(folder / "depth" / f"{view.name}.npy", view.depth_gt[0].numpy())
+        _write_npy(folder / "diffuse" / f"{view.name}.npy", _hwc(scene.diffuse_gt[index]))
+        _write_npy(folder / "specular" / f"{view.name}.npy", _hwc(scene.specular_gt[index]))
+        _write_png(folder / "highlights" / f"{view.name}.png", _mask_png(scene.highlight_masks[index]))
+        _write_png(folder / "overexposed" / f"{view.name}.png", _mask_png(scene.overexposed_masks[index]))
+        cameras.append(
+            {
+                "name": view.name,
+                "K": view.K.to(torch.float64).tolist(),
+                "world_to_camera": view.world_to_camera.to(torch.float64).tolist(),
+            }
+        )
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(scene.mesh_vertices, np.float64)),
+        o3d.utility.Vector3iVector(np.asarray(scene.mesh_triangles, np.int32)),
+    )
+    with atomic_path(folder / MESH_FILE) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
+            raise OSError(f"{folder / MESH_FILE}: open3d could not write the mesh")
+    with atomic_write(folder / META_FILE) as handle:
+        json.dump({"name": scene.name, **scene.meta}, handle, indent=2)
+    header = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "width": width,
+        "height": height,
+        "bit_depth": bits,
+        "angles_deg": list(POLARIZER_ANGLES_DEG),
+        "color": "RGB",
+        "views": cameras,
+    }
+    with atomic_write(folder / CAMERAS_FILE) as handle:
+        json.dump(header, handle, indent=1)
+    return folder
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading.
+
+
+def is_scene_folder(folder: str | Path) -> bool:
+    """True if ``folder`` holds a ``cameras.json`` of this format (cheap check for format sniffing)."""
+    path = Path(folder) / CAMERAS_FILE
+    if not path.is_file():
+        return False
+    try:
+        return json.loads(path.read_text()).get("format") == FORMAT_NAME
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def _matrix(entry: dict, key: str, shape: tuple[int, int], path: Path, view: str) -> np.ndarray:
+    try:
+        matrix = np.asarray(entry[key], dtype=np.float64)
+    except KeyError:
+        raise PolarInputError(path, f"view {view!r} has no {key!r}") from None
+    except (TypeError, ValueError):
+        raise PolarInputError(path, f"view {view!r}: {key} is not a numeric matrix") from None
+    if matrix.shape != shape:
+        raise PolarInputError(path, f"view {view!r}: {key} has shape {matrix.shape}, expected {shape}")
+    if not np.isfinite(matrix).all():
+        raise PolarInputError(path, f"view {view!r}: {key} has non-finite entries")
+    return matrix
+
+
+def _check_camera(K: np.ndarray, w2c: np.ndarray, path: Path, view: str) -> None:
+    if abs(np.linalg.det(K)) < 1e-12 or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise PolarInputError(path, f"view {view!r}: K is singular or has non-positive focal lengths")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        raise PolarInputError(path, f"view {view!r}: K is not an upper-triangular pinhole matrix with last row (0, 0, 1)")
+    if not np.allclose(w2c[3], [0.0, 0.0, 0.0, 1.0]):
+        raise PolarInputError(path, f"view {view!r}: world_to_camera last row is not (0, 0, 0, 1)")
+    rotation = w2c[:3, :3]
+    if np.abs(rotation.T @ rotation - np.eye(3)).max() > _ROTATION_TOL or np.linalg.det(rotation) < 0:
+        raise PolarInputError(path, f"view {view!r}: world_to_camera rotation is singular or not a proper rotation")
+
+
+def _read_header(folder: Path) -> dict:
+    if not folder.is_dir():
+        raise PolarInputError(folder, "not a folder")
+    path = folder / CAMERAS_FILE
+    if not path.is_file():
+        raise PolarInputError(path, "missing (not a polargs scene folder, or writing did not finish)")
+    try:
+        header = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise PolarInputError(path, f"unreadable JSON ({err})") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
+        raise PolarInputError(path, f"not a {FORMAT_NAME} cameras file (format={header.get('format') if isinstance(header, dict) else None!r})")
+    version = header.get("format_version")
+    if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
+        raise PolarInputError(path, f"unsupported format_version {version!r} (this reader knows 1..{FORMAT_VERSION})")
+    for key in ("width", "height"):
+        if not isinstance(header.get(key), int) or header[key] < 1:
+            raise PolarInputError(path, f"{key} must be a positive integer, got {header.get(key)!r}")
+    if header.get("bit_depth") not in (8, 16):
+        raise PolarInputError(path, f"bit_depth must be 8 or 16, got {header.get('bit_depth')!r}")
+    if list(header.get("angles_deg", [])) != list(POLARIZER_ANGLES_DEG):
+        raise PolarInputError(path, f"angles_deg must be {list(POLARIZER_ANGLES_DEG)}, got {header.get('angles_deg')!r}")
+    views = header.get("views")
+    if not isinstance(views, list) or not views:
+        raise PolarInputError(path, "no views listed")
+    names = set()
+    for entry in views:
+        name = entry.get("name") if isinstance(entry, dict) else None
+        if not isinstance(name, str) or not _NAME_RE.match(name):
+            raise PolarInputError(path, f"bad view name {name!r} (letters, digits, _ . - only)")
+        if name in names:
+            raise PolarInputError(path, f"duplicate view name {name!r}")
+        names.add(name)
+    return header
+
+
+def _read_png(path: Path, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise PolarInputError(path, f"missing {what}")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise PolarInputError(path, f"unreadable {what} (not a PNG image)")
+    if image.ndim == 3:
+        if image.shape[2] != 3:
+            raise PolarInputError(path, f"{what} has {image.shape[2]} channels, expected 3 (RGB) or 1")
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    return image
+
+
+def _read_angles(folder: Path, name: str, header: dict) -> Tensor:
+    """(4, C, H, W) float32 angle images in [0, 1], validated."""
+    images, first = [], None
+    for angle in POLARIZER_ANGLES_DEG:
+        path = _angle_path(folder, name, angle)
+        image = _read_png(path, f"{angle} deg angle image of view {name!r}")
+        if image.dtype not in (np.uint8, np.uint16):
+            raise PolarInputError(path, f"dtype {image.dtype}, expected uint8 or uint16")
+        if first is None:
+            first = (path, image)
+            if image.shape[:2] != (header["height"], header["width"]):
+                raise PolarInputError(
+                    path, f"size {image.shape[1]}x{image.shape[0]} differs from cameras.json {header['width']}x{header['height']}"
+                )
+        elif image.dtype != first[1].dtype or image.shape != first[1].shape:
+            raise PolarInputError(
+                path, f"{image.dtype} {image.shape} differs from {first[0].name} ({first[1].dtype} {first[1].shape})"
+            )
+        if image.max() == 0:
+            raise PolarInputError(path, "image is all dark (every pixel 0)")
+        images.append(image.astype(np.float32) / np.iinfo(image.dtype).max)
+    stacked = np.stack(images)
+    if stacked.ndim == 3:
+        stacked = stacked[..., None]
+    return torch.from_numpy(np.ascontiguousarray(stacked.transpose(0, 3, 1, 2)))
+
+
+def _read_mask(path: Path, shape: tuple[int, int], what: str) -> Tensor:
+    image = _read_png(path, what)
+    if image.ndim != 2 or image.shape != shape:
+        raise PolarInputError(path, f"{what} has shape {image.shape}, expected a single-channel {shape[1]}x{shape[0]} image")
+    return torch.from_numpy(image > 0).unsqueeze(0)
+
+
+def _read_npy(path: Path, shape: tuple[int, ...], what: str) -> Tensor:
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise PolarInputError(path, f"unreadable {what} ({err})") from None
+    if array.shape != shape:
+        raise PolarInputError(path, f"{what} has shape {array.shape}, expected {shape}")
+    if not np.issubdtype(array.dtype, np.floating):
+        raise PolarInputError(path, f"{what} has dtype {array.dtype}, expected float")
+    if not np.isfinite(array).all():
+        raise PolarInputError(path, f"{what} has NaN or infinite values")
+    tensor = torch.from_numpy(array.astype(np.float32))
+    return tensor.permute(2, 0, 1).contiguous() if tensor.ndim == 3 else tensor.unsqueeze(0)
+
+
+def _read_views(folder: Path, header: dict) -> tuple[list[View], list[Tensor]]:
+    """The views of a validated header and their (4, C, H, W) angle images."""
+    cameras_path = folder / CAMERAS_FILE
+    shape = (header["height"], header["width"])
+    views, angle_images = [], []
+    for entry in header["views"]:
+        name = entry["name"]
+        K = _matrix(entry, "K", (3, 3), cameras_path, name)
+        w2c = _matrix(entry, "world_to_camera", (4, 4), cameras_path, name)
+        _check_camera(K, w2c, cameras_path, name)
+        angles = _read_angles(folder, name, header)
+        mask_path, normal_path, depth_path = (
+            folder / "masks" / f"{name}.png",
+            folder / "normals" / f"{name}.npy",
+            folder / "depth" / f"{name}.npy",
+        )
+        views.append(
+            View(
+                name=name,
+                K=torch.from_numpy(K),
+                world_to_camera=torch.from_numpy(w2c),
+                stokes=stokes_from_intensities(angles),
+                mask=_read_mask(mask_path, shape, "mask") if mask_path.exists() else None,
+                normal_gt=_read_npy(normal_path, (*shape, 3), "GT normal map") if normal_path.exists() else None,
+                depth_gt=_read_npy(depth_path, shape, "GT depth map") if depth_path.exists() else None,
+                source=str(folder),
+            )
+        )
+        angle_images.append(angles)
+    return views, angle_images
+
+
+def read_scene_folder(folder: str | Path) -> list[View]:
+    """Read a scene folder into :class:`View` objects (Stokes from the angle images).
+
+    Masks, GT normals and GT depth are loaded when their files exist.
+
+    Args:
+        folder: the scene folder.
+
+    Returns:
+        the views in ``cameras.json`` order; K and world_to_camera float64, stokes (3, C, H, W)
+        float32.
+
+    Raises:
+        PolarInputError: missing or unreadable file, size/dtype mismatch between angle images,
+            an all-dark angle image, NaN/inf in a GT map, or non-finite/singular cameras.
+    """
+    folder = Path(folder)
+    return _read_views(folder, _read_header(folder))[0]
+
+
+def read_gt_mesh(folder: str | Path) -> o3d.geometry.TriangleMesh:
+    """The ground-truth mesh ``mesh.ply`` of a scene folder (world frame).
+
+    Raises:
+        PolarInputError: the file is missing, unreadable or has no triangles.
+    """
+    path = Path(folder) / MESH_FILE
+    if not path.is_file():
+        raise PolarInputError(path, "missing ground-truth mesh")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    if len(mesh.triangles) == 0:
+        raise PolarInputError(path, "mesh has no triangles (unreadable or empty)")
+    if not np.isfinite(np.asarray(mesh.vertices)).all():
+        raise PolarInputError(path, "mesh has non-finite vertices")
+    return mesh
+
+
+def read_scene(folder: str | Path) -> SyntheticScene:
+    """Read back everything :func:`write_scene` wrote, as a :class:`SyntheticScene`.
+
+    Raises:
+        PolarInputError: as :func:`read_scene_folder`, or a missing/malformed GT file or meta.
+    """
+    folder = Path(folder)
+    header = _read_header(folder)
+    views, angle_images = _read_views(folder, header)
+    shape = (header["height"], header["width"])
+    meta_path = folder / META_FILE
+    try:
+        meta = json.loads(meta_path.read_text())
+    except FileNotFoundError:
+        raise PolarInputError(meta_path, "missing scene meta") from None
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise PolarInputError(meta_path, f"unreadable JSON ({err})") from None
+    if not isinstance(meta, dict):
+        raise PolarInputError(meta_path, "scene meta must be a JSON object")
+    mesh = read_gt_mesh(folder)
+
+    def npy(sub: str, name: str, what: str) -> Tensor:
+        path = folder / sub / f"{name}.npy"
+        if not path.is_file():
+            raise PolarInputError(path, f"missing {what}")
+        return _read_npy(path, (*shape, 3), what)
+
+    return SyntheticScene(
+        name=str(meta.pop("name", folder.name)),
+        views=views,
+        angle_images=angle_images,
+        diffuse_gt=[npy("diffuse", v.name, "GT diffuse colour") for v in views],
+        specular_gt=[npy("specular", v.name, "GT specular colour") for v in views],
+        highlight_masks=[_read_mask(folder / "highlights" / f"{v.name}.png", shape, "highlight mask") for v in views],
+        overexposed_masks=[_read_mask(folder / "overexposed" / f"{v.name}.png", shape, "overexposure mask") for v in views],
+        mesh_vertices=np.asarray(mesh.vertices, dtype=np.float64),
+        mesh_triangles=np.asarray(mesh.triangles, dtype=np.int64),
+        meta=meta,
+    )

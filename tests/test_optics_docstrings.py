@@ -1,0 +1,33 @@
+"""Every docstring example of optics/ and viz, run one by one."""
+
+import doctest
+
+import pytest
+
+import polargs_plugin.optics.azimuth
+import polargs_plugin.optics.fresnel
+import polargs_plugin.optics.mosaic
+import polargs_plugin.optics.stokes
+import polargs_plugin.viz
+
+MODULES = [
+    polargs_plugin.optics.azimuth,
+    polargs_plugin.optics.fresnel,
+    polargs_plugin.optics.mosaic,
+    polargs_plugin.optics.stokes,
+    polargs_plugin.viz,
+]
+EXAMPLES = [test for module in MODULES for test in doctest.DocTestFinder().find(module) if test.examples]
+
+
+def test_every_public_function_has_an_example():
+    documented = {test.name.rsplit(".", 1)[-1] for test in EXAMPLES}
+    public = {name for module in MODULES for name in module.__all__ if callable(getattr(module, name))}
+    assert public <= documented, f"missing examples: {sorted(public - documented)}"
+
+
+@pytest.mark.parametrize("test", EXAMPLES, ids=lambda t: t.name)
+def test_docstring_example(test):
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    runner.run(test)
+    assert runner.failures == 0, f"{test.name}: docstring example failed (run with -s to see it)"

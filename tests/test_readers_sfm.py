@@ -1,0 +1,82 @@
+"""SfM on a polar folder without a COLMAP model (the optional ``sfm`` extra, pycolmap).
+
+The scene is a textured room corner (floor and two walls) ray-cast here in numpy; the recovered
+cameras must match the true ones up to a similarity (COLMAP fixes neither scale nor frame).
+"""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+
+from polargs_plugin.data import cameras as cam
+from polargs_plugin.data.polar_folder import find_colmap_model, read_polar_folder
+
+pycolmap = pytest.importorskip("pycolmap")
+
+H, W, F = 240, 320, 260.0
+K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]])
+
+
+def _texture(rng, size=48):
+    coarse = rng.uniform(0, 1, (size, size))
+    return cv2.resize(coarse, (8 * size, 8 * size), interpolation=cv2.INTER_CUBIC)
+
+
+def _render(w2c, textures):
+    """Brightness of the nearest of the planes z=0, x=-1, y=-1 (each textured over [-1, 2]^2)."""
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ w2c[:3, :3]  # world directions
+    origin = -w2c[:3, :3].T @ w2c[:3, 3]
+    best, image = np.full((H, W), np.inf), np.zeros((H, W))
+    for axis, offset, texture in zip((2, 0, 1), (0.0, -1.0, -1.0), textures):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (offset - origin[axis]) / rays[..., axis]
+        hit = origin + t[..., None] * rays
+        others = [hit[..., a] for a in range(3) if a != axis]
+        inside = (t > 0) & (t < best) & np.all([(o > -1) & (o < 2) for o in others], axis=0)
+        coords = [(o + 1) / 3 * (texture.shape[0] - 1) for o in others]
+        value = map_coordinates(texture, coords, order=1, mode="nearest")
+        image = np.where(inside, 0.15 + 0.7 * value, image)
+        best = np.where(inside, t, best)
+    return image
+
+
+def test_sfm_recovers_cameras_up_to_similarity(tmp_path):
+    rng = np.random.default_rng(3)
+    textures = [_texture(rng) for _ in range(3)]
+    true = {}
+    for i in range(8):
+        angle = math.radians(20 + 7 * i)
+        eye = np.array([3.2 * math.cos(angle), 3.2 * math.sin(angle), 1.6])
+        w2c = cam.look_at(eye, [0.2, 0.2, 0.4], up=[0, 0, 1])
+        true[f"view{i}"] = w2c
+        s0 = _render(w2c, textures)
+        rho, phi = 0.2, 0.5
+        for beta in (0, 45, 90, 135):
+            image = s0 / 2 * (1 + rho * math.cos(2 * math.radians(beta) - 2 * phi))
+            cv2.imwrite(str(tmp_path / f"view{i}_{beta}.png"), np.rint(image * 255).astype(np.uint8))
+    assert find_colmap_model(tmp_path) is None
+
+    views = read_polar_folder(tmp_path, sfm=True)
+
+    assert find_colmap_model(tmp_path) == tmp_path / "sparse" / "0"
+    assert len(views) >= 6
+    centres = np.stack([v.camera_center.numpy() for v in views])
+    true_centres = np.stack([-true[v.name][:3, :3].T @ true[v.name][:3, 3] for v in views])
+    # Umeyama similarity aligning the SfM centres to the true ones
+    mu, true_mu = centres.mean(0), true_centres.mean(0)
+    cov = (true_centres - true_mu).T @ (centres - mu) / len(views)
+    U, S, Vt = np.linalg.svd(cov)
+    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+    rotation = U @ D @ Vt
+    scale = np.trace(np.diag(S) @ D) / ((centres - mu) ** 2).sum(1).mean()
+    aligned = scale * (centres - mu) @ rotation.T + true_mu
+    assert np.abs(aligned - true_centres).max() < 0.05 * 3.2
+    for v in views:  # camera orientation: R_sfm = R_true @ rotation (world frames differ by it)
+        R_true = true[v.name][:3, :3]
+        residual = R_true @ rotation @ v.world_to_camera.numpy()[:3, :3].T
+        assert math.degrees(math.acos(np.clip((np.trace(residual) - 1) / 2, -1, 1))) < 1.5
+        assert abs(v.K[0, 0].item() / F - 1) < 0.03
