@@ -2,14 +2,16 @@
 PY := .venv/bin/python
 SCENE ?= glossy_plane_sphere
 OUT ?= out/demo
+EXTRAS ?= dev,sfm
 
 .PHONY: setup demo test bench
 
 setup:
-	@bash scripts/setup_env.sh
+	@EXTRAS=$(EXTRAS) bash scripts/setup_env.sh
 
 demo: setup
 	$(PY) -m polargs_plugin.cli generate --scene $(SCENE) --out $(OUT) --pictures
+	@echo "Overview picture: $(OUT)/pictures/overview.png"
 
 # Two pytest workers on two cores; each worker single-threaded so they do not fight.
 test: setup

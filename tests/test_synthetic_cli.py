@@ -23,7 +23,8 @@ def test_generate_writes_scene_and_pictures(tmp_path, capsys):
     aolp_picture = cv2.imread(str(out / "pictures" / "view_001_aolp_dolp.png"), cv2.IMREAD_UNCHANGED)
     assert aolp_picture is not None and aolp_picture.shape == (32, 40, 3)
     printed = capsys.readouterr().out
-    assert "bumpy_mixed" in printed and "3 x 40x32" in printed and "12 pictures" in printed
+    assert "bumpy_mixed" in printed and "3 x 40x32" in printed and "13 pictures" in printed
+    assert (out / "pictures" / "overview.png").is_file()
 
 
 def test_generate_seed_controls_noise(tmp_path):

@@ -133,3 +133,21 @@ def test_save_polar_pictures(tmp_path):
     assert np.abs(read[3] - np.clip(s0.numpy() / 2, 0, 1)).max() <= 0.5 / 255 + 1e-6
     with pytest.raises(ValueError, match=r"\(3, C, H, W\)"):
         save_polar_pictures(stokes[:2], tmp_path, "bad")
+
+
+def test_contact_sheet_places_pictures_in_a_grid(tmp_path):
+    from polargs_plugin.viz import save_contact_sheet
+
+    red = torch.zeros(3, 4, 5)
+    red[0] = 1.0
+    grey = torch.full((1, 4, 5), 0.5)
+    path = save_contact_sheet([[red, grey], [grey]], tmp_path / "sheet.png", gap=2)
+    sheet = cv2.imread(str(path))[..., ::-1]  # RGB
+    assert sheet.shape == (4 + 2 + 4, 5 + 2 + 5, 3)
+    assert sheet[0, 0].tolist() == [255, 0, 0]
+    assert sheet[0, 7].tolist() == [128, 128, 128]
+    assert sheet[6, 0].tolist() == [128, 128, 128]
+    assert sheet[6, 7].tolist() == [255, 255, 255]  # empty cell stays white
+    assert sheet[4, 0].tolist() == [255, 255, 255]  # gap row
+    with pytest.raises(ValueError, match="expected"):
+        save_contact_sheet([[red, torch.zeros(3, 2, 2)]], tmp_path / "bad.png")

@@ -21,7 +21,7 @@ from torch import Tensor
 from polargs_plugin.io import atomic_path
 from polargs_plugin.optics import aolp_from_stokes, dolp_from_stokes
 
-__all__ = ["AOLP_STYLES", "hsv_to_rgb", "aolp_to_rgb", "dolp_to_rgb", "save_png", "save_polar_pictures"]
+__all__ = ["AOLP_STYLES", "hsv_to_rgb", "aolp_to_rgb", "dolp_to_rgb", "save_png", "save_polar_pictures", "polar_panels", "save_contact_sheet"]
 
 AOLP_STYLES = ("dark", "light")
 
@@ -182,13 +182,53 @@ def save_polar_pictures(stokes: Tensor, out_dir: str | os.PathLike, prefix: str)
     """
     if stokes.ndim != 4 or stokes.shape[0] != 3:
         raise ValueError(f"stokes must have shape (3, C, H, W), got {tuple(stokes.shape)}")
+    out_dir = Path(out_dir)
+    return [save_png(out_dir / f"{prefix}_{name}.png", image) for name, image in polar_panels(stokes).items()]
+
+
+def polar_panels(stokes: Tensor) -> dict[str, Tensor]:
+    """The pictures :func:`save_polar_pictures` writes, as (3, H, W) float RGB tensors.
+
+    Args:
+        stokes: :math:`(3, C, H, W)` Stokes (s0, s1, s2).
+
+    Returns:
+        ``{"aolp", "dolp", "aolp_dolp", "s0"}`` -> :math:`(C', H, W)` in [0, 1] (C' = 3, or C for s0).
+    """
+    if stokes.ndim != 4 or stokes.shape[0] != 3:
+        raise ValueError(f"stokes must have shape (3, C, H, W), got {tuple(stokes.shape)}")
     mean = stokes.mean(dim=1, keepdim=True).float()  # (3, 1, H, W)
     aolp, dolp = aolp_from_stokes(mean), dolp_from_stokes(mean)
-    out_dir = Path(out_dir)
-    pictures = {
+    return {
         "aolp": aolp_to_rgb(aolp),
         "dolp": dolp_to_rgb(dolp),
         "aolp_dolp": aolp_to_rgb(aolp, dolp, "dark"),
         "s0": torch.clamp(stokes[0].float() / 2, 0.0, 1.0),
     }
-    return [save_png(out_dir / f"{prefix}_{name}.png", image) for name, image in pictures.items()]
+
+
+def save_contact_sheet(rows: list[list[Tensor]], path: str | os.PathLike, gap: int = 2) -> Path:
+    """Tile pictures into one PNG: one list per row, all pictures (C, H, W) of one size.
+
+    Grey pictures (C = 1) are repeated to RGB; gaps are white. Written atomically.
+
+    Args:
+        rows: pictures per row, each :math:`(1 \text{ or } 3, H, W)` float in [0, 1].
+        path: destination PNG.
+        gap: white pixels between pictures.
+
+    Returns:
+        The path written.
+    """
+    if not rows or not rows[0]:
+        raise ValueError("contact sheet needs at least one picture")
+    height, width = rows[0][0].shape[-2:]
+    columns = max(len(row) for row in rows)
+    sheet = torch.ones(3, len(rows) * (height + gap) - gap, columns * (width + gap) - gap)
+    for r, row in enumerate(rows):
+        for c, picture in enumerate(row):
+            if picture.shape[-2:] != (height, width):
+                raise ValueError(f"picture ({r}, {c}) is {tuple(picture.shape[-2:])}, expected {(height, width)}")
+            y, x = r * (height + gap), c * (width + gap)
+            sheet[:, y : y + height, x : x + width] = picture.detach().float().cpu().expand(3, -1, -1)
+    return save_png(path, sheet)

@@ -87,10 +87,15 @@ def run(args: argparse.Namespace) -> int:
     write_scene(scene, args.out)
     pictures = 0
     if args.pictures:
-        from polargs_plugin.viz import save_polar_pictures
+        from polargs_plugin.viz import polar_panels, save_contact_sheet, save_polar_pictures
 
         for view in scene.views:
             pictures += len(save_polar_pictures(view.stokes, args.out / "pictures", view.name))
+        # One overview picture: a few views as rows, s0 / AoLP / DoLP / AoLP-with-DoLP as columns.
+        step = max(1, len(scene.views) // 4)
+        rows = [[polar_panels(v.stokes)[k] for k in ("s0", "aolp", "dolp", "aolp_dolp")] for v in scene.views[::step][:4]]
+        save_contact_sheet(rows, args.out / "pictures" / "overview.png")
+        pictures += 1
     mask = torch.stack([v.mask for v in scene.views])
     dolp = torch.stack([dolp_from_stokes(v.stokes.mean(dim=1, keepdim=True)) for v in scene.views])
 
