@@ -37,6 +37,12 @@ class CorrectionConfig:
     intensity_range: tuple[float, float] = (eight_bit(160), eight_bit(255))
     mahalanobis_threshold: float = 0.8
     propagation_radius: int = 7
+    # docs/choices.md: the propagation window is sampled every `propagation_step` pixels (speed).
+    propagation_step: int = 2
+    # docs/choices.md: angles whose brightest channel reaches this level are left out of PRI.
+    pri_saturation: float = eight_bit(254)
+    # docs/choices.md: None = brightness-preserving rho_d (I_chro keeps the donors' colour).
+    rho_d: float | None = None
 
 
 @dataclass
@@ -70,6 +76,14 @@ class PatchMatchConfig:
     tau: float = 0.1
     sigma_dolp: float = 0.5
     depth_perturbation: float = 0.02
+    top_k_sources: int = 2
+    propagation_distances: tuple[int, ...] = (1, 3, 5)
+    refine_depth_range: float = 0.05
+    refine_normal_deg: float = 20.0
+    azimuth_model: str = "orthographic"
+    ncc_backend: str = "auto"
+    chunk_elements: int = 1 << 22
+    seed: int = 0
 
 
 @dataclass
@@ -80,6 +94,10 @@ class FilterConfig:
     max_relative_depth: float = 0.01
     min_consistent_views: int = 2
     max_polar_residual: float = 0.3
+    use_polar: bool = True
+    polar_dolp_reference: float = 0.1
+    azimuth_model: str = "orthographic"
+    max_photometric_cost: float = 0.9
 
 
 @dataclass
@@ -93,6 +111,10 @@ class DensifyConfig:
     stride: int = 2
     max_new_per_call: int = 5000
     initial_opacity: float = 0.5
+    alpha_threshold: float = 0.5
+    seed_relative_depth: float = 0.02
+    thin_scale_ratio: float = 0.1
+    use_view_mask: bool = True
     patchmatch: PatchMatchConfig = field(default_factory=PatchMatchConfig)
     filters: FilterConfig = field(default_factory=FilterConfig)
 

@@ -194,6 +194,11 @@ def polar_panels(stokes: Tensor) -> dict[str, Tensor]:
 
     Returns:
         ``{"aolp", "dolp", "aolp_dolp", "s0"}`` -> :math:`(C', H, W)` in [0, 1] (C' = 3, or C for s0).
+
+    Example:
+        >>> s = torch.tensor([1.0, 0.0, 0.5]).reshape(3, 1, 1, 1).expand(3, 3, 2, 2)
+        >>> {name: tuple(p.shape) for name, p in polar_panels(s).items()}["aolp"]
+        (3, 2, 2)
     """
     if stokes.ndim != 4 or stokes.shape[0] != 3:
         raise ValueError(f"stokes must have shape (3, C, H, W), got {tuple(stokes.shape)}")
@@ -219,6 +224,13 @@ def save_contact_sheet(rows: list[list[Tensor]], path: str | os.PathLike, gap: i
 
     Returns:
         The path written.
+
+    Example:
+        >>> import tempfile
+        >>> grey = torch.full((1, 4, 4), 0.5)
+        >>> out = save_contact_sheet([[grey, grey]], Path(tempfile.mkdtemp()) / "sheet.png")
+        >>> cv2.imread(str(out)).shape
+        (4, 10, 3)
     """
     if not rows or not rows[0]:
         raise ValueError("contact sheet needs at least one picture")

@@ -1,1 +1,114 @@
+"""Module PC: polar-guided photometric correction (reflective masks, PRI, colour refinement maps).
 
+:func:`compute_polar_maps` turns one view's Stokes images into the :class:`PolarMaps` the losses
+and the densifier use. The stateless pieces live in ``masks``, ``pri`` and ``crm``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from polargs_plugin.config import CorrectionConfig
+from polargs_plugin.correction.crm import chromaticity_map, diffuse_map, propagate, whiten_features
+from polargs_plugin.correction.masks import peak_intensity, reflective_masks
+from polargs_plugin.correction.pri import (
+    clipped_angles,
+    polarimetric_reference_intensity,
+    pri_weights,
+    pri_with_clipping,
+)
+from polargs_plugin.optics.stokes import aolp_from_stokes, dolp_from_stokes, intensities_from_stokes
+from polargs_plugin.types import PolarMaps
+
+__all__ = [
+    "compute_polar_maps",
+    "peak_intensity",
+    "reflective_masks",
+    "polarimetric_reference_intensity",
+    "pri_weights",
+    "clipped_angles",
+    "pri_with_clipping",
+    "diffuse_map",
+    "whiten_features",
+    "propagate",
+    "chromaticity_map",
+]
+
+
+def compute_polar_maps(
+    stokes: Tensor,
+    mask: Tensor | None = None,
+    config: CorrectionConfig | None = None,
+    intensities: Tensor | None = None,
+) -> PolarMaps:
+    """All per-view maps of module PC.
+
+    AoLP and DoLP come from the channel-mean Stokes. With ``config.enabled`` False only those and
+    the intensity are filled (the densifier still needs them). Reflective masks are restricted to
+    ``mask``; donors of the I_chro propagation are the non-reflective pixels inside ``mask``.
+    Propagation features (docs/choices.md): (DoLP, PRI), whitened by their covariance over the
+    donors; a target pixel whose four angles all clip has no usable PRI and compares on DoLP only.
+
+    Args:
+        stokes: :math:`(3, C, H, W)` Stokes of one view.
+        mask: optional :math:`(1, H, W)` bool object mask.
+        config: correction settings (defaults: the paper's).
+        intensities: optional :math:`(4, C, H, W)` 0/45/90/135 deg images the Stokes came from
+            (saves re-deriving them by Malus, e.g. straight after demosaicing).
+
+    Returns:
+        :class:`PolarMaps`; ``extras`` holds ``"peak_intensity"`` :math:`(1, H, W)` and
+        ``"i_chro_valid"`` :math:`(1, H, W)` bool (overexposed pixels that found a donor).
+    """
+    config = config or CorrectionConfig()
+    if stokes.ndim != 4 or stokes.shape[0] != 3:
+        raise ValueError(f"stokes must have shape (3, C, H, W), got {tuple(stokes.shape)}")
+    mean_stokes = stokes.mean(dim=-3, keepdim=True)
+    aolp = aolp_from_stokes(mean_stokes)
+    dolp = dolp_from_stokes(mean_stokes)
+    intensity = stokes[0] / 2
+    if not config.enabled:
+        return PolarMaps(aolp=aolp, dolp=dolp, intensity=intensity)
+
+    inside = torch.ones_like(dolp, dtype=torch.bool) if mask is None else mask.to(torch.bool)
+    peak = peak_intensity(mean_stokes)
+    specular, overexposed = reflective_masks(
+        dolp, peak, config.specular_dolp, config.overexposed_dolp, config.intensity_range
+    )
+    specular &= inside
+    overexposed &= inside
+
+    angles = intensities_from_stokes(stokes) if intensities is None else intensities  # (4, C, H, W)
+    pri, all_clipped = pri_with_clipping(angles, config.pri_saturation)
+    i_diff = diffuse_map(stokes)
+
+    donors = inside & ~specular & ~overexposed
+    features = whiten_features(torch.cat([dolp, pri]), donors)
+    components = torch.cat([torch.ones_like(all_clipped), ~all_clipped])
+    i_prop, chro_valid = propagate(
+        i_diff,
+        features,
+        overexposed,
+        donors,
+        config.propagation_radius,
+        config.mahalanobis_threshold,
+        components,
+        config.propagation_step,
+    )
+    # I_chro only where propagation succeeded (a small fraction of the image).
+    i_chro = torch.zeros_like(i_diff)
+    where = chro_valid.reshape(-1).nonzero().squeeze(1)
+    columns = (m.reshape(m.shape[0], -1)[:, where, None] for m in (i_prop, i_diff))  # (C, T, 1)
+    i_chro.reshape(i_chro.shape[0], -1)[:, where] = chromaticity_map(*columns, config.rho_d)[..., 0]
+    return PolarMaps(
+        aolp=aolp,
+        dolp=dolp,
+        intensity=intensity,
+        specular_mask=specular,
+        overexposed_mask=overexposed,
+        pri=pri,
+        i_diff=i_diff,
+        i_chro=i_chro,
+        extras={"peak_intensity": peak, "i_chro_valid": chro_valid},
+    )

@@ -1,0 +1,469 @@
+"""A minimal 3D Gaussian Splatting model: vanilla 3DGS parameters and Adam groups.
+
+Raw parameters (one Adam group each, named like the parameters):
+
+==================  ===============  =============================================
+name                shape            activation
+==================  ===============  =============================================
+``means``           (N, 3)           none (world positions)
+``sh_dc``           (N, 1, 3)        SH DC, ``rgb = SH_C0 * dc + 0.5``
+``sh_rest``         (N, K - 1, 3)    higher SH bands, K = (degree + 1) ** 2
+``opacity_logits``  (N,)             sigmoid
+``log_scales``      (N, 3)           exp
+``quats``           (N, 4)           wxyz, normalised when activated
+==================  ===============  =============================================
+
+Learning rates are vanilla 3DGS; the position rate decays exponentially and is multiplied by
+the scene extent. Row edits (:meth:`GaussianModel.extend`, :meth:`GaussianModel.keep`,
+:meth:`GaussianModel.append`) keep the Adam moments aligned with the rows: new rows get zero
+moments, kept rows keep theirs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor, nn
+
+from polargs_plugin.backends.reference.projection import SH_C0, rgb_to_sh, sh_to_rgb
+from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
+
+__all__ = [
+    "SH_C0",
+    "PARAM_NAMES",
+    "LearningRates",
+    "GaussianModel",
+    "rgb_to_sh",
+    "sh_to_rgb",
+    "exponential_lr",
+    "scene_extent",
+    "init_points_from_masks",
+    "init_points_in_box",
+]
+
+PARAM_NAMES = ("means", "sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")
+
+
+@dataclass
+class LearningRates:
+    """Vanilla 3DGS learning rates (``arguments/__init__.py``).
+
+    The position rate goes from ``means_init`` to ``means_final`` (log-linear) over
+    ``means_max_steps`` and is multiplied by the scene extent.
+    """
+
+    means_init: float = 1.6e-4
+    means_final: float = 1.6e-6
+    means_delay_mult: float = 0.01
+    means_delay_steps: int = 0
+    means_max_steps: int = 30_000
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 2.5e-3 / 20
+    opacity_logits: float = 0.025
+    log_scales: float = 5e-3
+    quats: float = 1e-3
+
+
+def exponential_lr(
+    step: int, lr_init: float, lr_final: float, max_steps: int, delay_steps: int = 0, delay_mult: float = 1.0
+) -> float:
+    """Log-linear interpolation from ``lr_init`` (step 0) to ``lr_final`` (``max_steps``).
+
+    With ``delay_steps > 0`` the rate is further scaled by a sine ramp from ``delay_mult`` to 1.
+    """
+    if step < 0 or (lr_init == 0.0 and lr_final == 0.0):
+        return 0.0
+    delay = 1.0
+    if delay_steps > 0:
+        ramp = min(max(step / delay_steps, 0.0), 1.0)
+        delay = delay_mult + (1.0 - delay_mult) * math.sin(0.5 * math.pi * ramp)
+    t = min(max(step / max(max_steps, 1), 0.0), 1.0)
+    return delay * math.exp(math.log(lr_init) * (1.0 - t) + math.log(lr_final) * t)
+
+
+def scene_extent(views: list[View]) -> float:
+    """Vanilla 3DGS scene radius: 1.1 x the largest camera distance from the camera centroid.
+
+    Falls back to 1.0 for a single camera (no spread to measure).
+    """
+    centres = torch.stack([v.camera_center.double() for v in views])
+    radius = float((centres - centres.mean(0)).norm(dim=1).max()) * 1.1
+    return radius if radius > 0 else 1.0
+
+
+def _quat_to_rotmat(quats: Tensor) -> Tensor:
+    """(N, 4) wxyz (any norm) to (N, 3, 3) rotation matrices."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+def _logit(p: Tensor) -> Tensor:
+    p = p.clamp(1e-6, 1 - 1e-6)
+    return torch.log(p / (1 - p))
+
+
+def _knn_scale(points: Tensor) -> Tensor:
+    """(N, 3) -> (N,) sqrt of the mean squared distance to the 3 nearest neighbours (vanilla init)."""
+    n = points.shape[0]
+    if n < 2:
+        return torch.full((n,), 0.01, dtype=points.dtype, device=points.device)
+    k = min(3, n - 1)
+    dist, _ = cKDTree(points.detach().cpu().double().numpy()).query(
+        points.detach().cpu().double().numpy(), k=k + 1
+    )
+    mean_sq = (dist[:, 1:] ** 2).mean(axis=1).clip(min=1e-14)
+    return torch.from_numpy(np.sqrt(mean_sq)).to(points)
+
+
+class GaussianModel(nn.Module):
+    """Gaussians with vanilla 3DGS raw parameters and one Adam optimizer (one group per name).
+
+    Args:
+        params: raw tensors keyed by :data:`PARAM_NAMES` (shapes in the module docstring).
+        sh_degree: maximum SH degree; ``sh_rest`` must have ``(sh_degree + 1) ** 2 - 1`` rows.
+        extent: scene extent multiplying the position learning rate.
+        lrs: learning rates.
+    """
+
+    def __init__(
+        self, params: dict[str, Tensor], sh_degree: int, extent: float = 1.0, lrs: LearningRates | None = None
+    ):
+        super().__init__()
+        missing = set(PARAM_NAMES) - set(params)
+        if missing:
+            raise ValueError(f"GaussianModel: missing parameters {sorted(missing)}")
+        n = params["means"].shape[0]
+        expected = {
+            "means": (n, 3),
+            "sh_dc": (n, 1, 3),
+            "sh_rest": (n, (sh_degree + 1) ** 2 - 1, 3),
+            "opacity_logits": (n,),
+            "log_scales": (n, 3),
+            "quats": (n, 4),
+        }
+        for name, shape in expected.items():
+            if tuple(params[name].shape) != shape:
+                raise ValueError(f"GaussianModel: {name} has shape {tuple(params[name].shape)}, expected {shape}")
+            setattr(self, name, nn.Parameter(params[name].detach().clone().float().contiguous()))
+        self.max_sh_degree = int(sh_degree)
+        self.active_sh_degree = 0
+        self.extent = float(extent)
+        self.lrs = lrs or LearningRates()
+        self.optimizer = torch.optim.Adam(
+            [
+                {"params": [getattr(self, name)], "lr": self._base_lr(name), "name": name}
+                for name in PARAM_NAMES
+            ],
+            lr=0.0,
+            eps=1e-15,
+        )
+
+    # ----------------------------------------------------------------- construction
+    @classmethod
+    def from_points(
+        cls,
+        points: Tensor,
+        colors: Tensor,
+        *,
+        sh_degree: int = 0,
+        extent: float = 1.0,
+        initial_opacity: float = 0.1,
+        lrs: LearningRates | None = None,
+    ) -> "GaussianModel":
+        """Vanilla 3DGS initialisation from a point cloud.
+
+        Isotropic scales from the 3 nearest neighbours, identity rotations, opacity
+        ``initial_opacity``, SH DC from ``colors`` and zero higher bands.
+
+        Args:
+            points: (N, 3) world positions.
+            colors: (N, 3) RGB in [0, 1].
+        """
+        points = torch.as_tensor(points, dtype=torch.float32)
+        colors = torch.as_tensor(colors, dtype=torch.float32, device=points.device)
+        if points.ndim != 2 or points.shape[1] != 3 or colors.shape != points.shape:
+            raise ValueError(
+                f"from_points: points {tuple(points.shape)} and colors {tuple(colors.shape)} must both be (N, 3)"
+            )
+        n = points.shape[0]
+        quats = torch.zeros(n, 4, device=points.device)
+        quats[:, 0] = 1.0
+        params = {
+            "means": points,
+            "sh_dc": rgb_to_sh(colors.clamp(0, 1)).unsqueeze(1),
+            "sh_rest": torch.zeros(n, (sh_degree + 1) ** 2 - 1, 3, device=points.device),
+            "opacity_logits": _logit(torch.full((n,), float(initial_opacity), device=points.device)),
+            "log_scales": torch.log(_knn_scale(points)).unsqueeze(1).repeat(1, 3),
+            "quats": quats,
+        }
+        return cls(params, sh_degree=sh_degree, extent=extent, lrs=lrs)
+
+    # ------------------------------------------------------------------ activations
+    @property
+    def num(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def scales(self) -> Tensor:
+        """(N, 3) positive scales."""
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> Tensor:
+        """(N,) opacities in (0, 1)."""
+        return torch.sigmoid(self.opacity_logits)
+
+    @property
+    def rotations(self) -> Tensor:
+        """(N, 4) unit wxyz quaternions."""
+        return torch.nn.functional.normalize(self.quats, dim=-1)
+
+    @property
+    def sh(self) -> Tensor:
+        """(N, K, 3) SH coefficients up to the active degree, K = (active_sh_degree + 1) ** 2."""
+        k = (self.active_sh_degree + 1) ** 2
+        return torch.cat([self.sh_dc, self.sh_rest[:, : k - 1]], dim=1)
+
+    def state(self) -> GaussianState:
+        """Activated, autograd-connected view of the Gaussians for the hooks."""
+        return GaussianState(means=self.means, quats=self.rotations, scales=self.scales, opacities=self.opacities)
+
+    def render(self, view: View, background: Tensor | None = None, **kwargs) -> RenderOut:
+        """Render ``view`` with the reference rasterizer (extra ``kwargs`` go to ``rasterize``)."""
+        from polargs_plugin.backends.reference.rasterizer import rasterize
+
+        device = self.means.device
+        return rasterize(
+            self.means,
+            self.rotations,
+            self.scales,
+            self.opacities,
+            self.sh,
+            view.K.to(device=device, dtype=torch.float32),
+            view.world_to_camera.to(device=device, dtype=torch.float32),
+            view.width,
+            view.height,
+            background=background,
+            **kwargs,
+        )
+
+    # ------------------------------------------------------------- learning rates
+    def _base_lr(self, name: str) -> float:
+        if name == "means":
+            return self.means_lr(0)
+        return float(getattr(self.lrs, name))
+
+    def means_lr(self, step: int) -> float:
+        """Position learning rate at ``step`` (scene extent included)."""
+        lr = self.lrs
+        return self.extent * exponential_lr(
+            step, lr.means_init, lr.means_final, lr.means_max_steps, lr.means_delay_steps, lr.means_delay_mult
+        )
+
+    def update_learning_rate(self, step: int) -> float:
+        """Set the position group's rate for ``step``; returns it."""
+        value = self.means_lr(step)
+        self._group("means")["lr"] = value
+        return value
+
+    def _group(self, name: str) -> dict:
+        for group in self.optimizer.param_groups:
+            if group["name"] == name:
+                return group
+        raise KeyError(name)
+
+    # -------------------------------------------------------------------- row edits
+    def _edit_rows(
+        self,
+        param_fn: Callable[[str, Tensor], Tensor],
+        moment_fn: Callable[[str, Tensor], Tensor],
+        names: tuple[str, ...] = PARAM_NAMES,
+    ) -> None:
+        """Replace each named parameter by ``param_fn(name, old)`` and each Adam moment by
+        ``moment_fn(name, old_moment)``; the step counter is kept."""
+        for name in names:
+            group = self._group(name)
+            old = group["params"][0]
+            new = nn.Parameter(param_fn(name, old.detach()).contiguous())
+            state = self.optimizer.state.pop(old, None)
+            if state:
+                for key in ("exp_avg", "exp_avg_sq"):
+                    state[key] = moment_fn(name, state[key]).contiguous()
+                self.optimizer.state[new] = state
+            group["params"][0] = new
+            setattr(self, name, new)
+
+    def extend(self, rows: dict[str, Tensor]) -> None:
+        """Append raw rows (keyed by :data:`PARAM_NAMES`) with zero Adam moments."""
+        m = rows["means"].shape[0]
+        self._edit_rows(
+            lambda name, old: torch.cat([old, rows[name].to(old)], dim=0),
+            lambda name, mom: torch.cat([mom, mom.new_zeros((m, *mom.shape[1:]))], dim=0),
+        )
+
+    def keep(self, mask: Tensor) -> None:
+        """Keep the rows where the (N,) bool ``mask`` is true, with their Adam moments."""
+        if mask.shape != (self.num,) or mask.dtype != torch.bool:
+            raise ValueError(f"keep: mask must be bool ({self.num},), got {mask.dtype} {tuple(mask.shape)}")
+        self._edit_rows(lambda name, old: old[mask], lambda name, mom: mom[mask])
+
+    def append(self, new: NewGaussians) -> None:
+        """Append activated Gaussians (e.g. from ``hooks.densify``); Adam moments zero-padded."""
+        m = len(new)
+        device = self.means.device
+        colors = new.colors.to(device=device, dtype=torch.float32).reshape(m, 3)
+        self.extend(
+            {
+                "means": new.means.to(device=device, dtype=torch.float32).reshape(m, 3),
+                "sh_dc": rgb_to_sh(colors.clamp(0, 1)).unsqueeze(1),
+                "sh_rest": torch.zeros(m, self.sh_rest.shape[1], 3, device=device),
+                "opacity_logits": _logit(new.opacities.to(device=device, dtype=torch.float32).reshape(m)),
+                "log_scales": torch.log(new.scales.to(device=device, dtype=torch.float32).reshape(m, 3).clamp_min(1e-12)),
+                "quats": torch.nn.functional.normalize(new.quats.to(device=device, dtype=torch.float32).reshape(m, 4), dim=-1),
+            }
+        )
+
+    def reset_opacity(self, max_opacity: float) -> None:
+        """Clamp opacities to at most ``max_opacity`` and zero their Adam moments (vanilla reset)."""
+        cap = _logit(torch.tensor(max_opacity, device=self.means.device))
+        self._edit_rows(
+            lambda name, old: torch.minimum(old, cap),
+            lambda name, mom: torch.zeros_like(mom),
+            names=("opacity_logits",),
+        )
+
+    def rotation_matrices(self) -> Tensor:
+        """(N, 3, 3) rotation matrices of the Gaussians (no grad)."""
+        return _quat_to_rotmat(self.quats.detach())
+
+    # ------------------------------------------------------------------ persistence
+    def checkpoint(self) -> dict:
+        """Parameters, optimizer state and settings as plain tensors and numbers."""
+        return {
+            "params": {name: getattr(self, name).detach().clone() for name in PARAM_NAMES},
+            "optimizer": self.optimizer.state_dict(),
+            "max_sh_degree": self.max_sh_degree,
+            "active_sh_degree": self.active_sh_degree,
+            "extent": self.extent,
+        }
+
+    @classmethod
+    def from_checkpoint(cls, data: dict, lrs: LearningRates | None = None, device: str | torch.device = "cpu") -> "GaussianModel":
+        """Inverse of :meth:`checkpoint` (the optimizer state, its moments and rates included)."""
+        params = {name: t.to(device) for name, t in data["params"].items()}
+        model = cls(params, sh_degree=int(data["max_sh_degree"]), extent=float(data["extent"]), lrs=lrs)
+        model.optimizer.load_state_dict(data["optimizer"])
+        model.active_sh_degree = int(data["active_sh_degree"])
+        return model
+
+
+def _project(points: Tensor, view: View) -> tuple[Tensor, Tensor]:
+    """(P, 3) world points -> (P, 2) pixel coordinates (+0.5 centres) and (P,) camera z."""
+    w2c = view.world_to_camera.to(points)
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    uvw = cam @ view.K.to(points).T
+    return uvw[:, :2] / uvw[:, 2:].clamp_min(1e-12), z
+
+
+def _lookat_box(views: list[View]) -> tuple[Tensor, Tensor]:
+    """Centre (3,) and half size (scalar) of a cube around the cameras' common look-at region.
+
+    The centre is the least-squares point closest to every optical axis; the half size is the
+    half-width seen by the widest camera at its distance to the centre.
+    """
+    origins = torch.stack([v.camera_center.double().cpu() for v in views])
+    axes = torch.stack([v.R.double().cpu()[2] for v in views])  # camera +z in world
+    eye = torch.eye(3, dtype=torch.float64)
+    proj = eye - axes[:, :, None] * axes[:, None, :]
+    if len(views) > 1 and torch.linalg.matrix_rank(proj.sum(0)) == 3:
+        centre = torch.linalg.solve(proj.sum(0), (proj @ origins[:, :, None]).sum(0)).squeeze(1)
+    else:
+        centre = origins[0] + axes[0] * 1.0
+    half = 0.0
+    for v, o in zip(views, origins):
+        dist = float((centre - o).norm())
+        k = v.K.double().cpu()
+        half = max(half, dist * 0.5 * max(v.width / float(k[0, 0]), v.height / float(k[1, 1])))
+    return centre, torch.tensor(half, dtype=torch.float64)
+
+
+def init_points_in_box(views: list[View], n: int, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """``n`` uniform random points (float32 (n, 3)) and grey colours (n, 3) in the look-at cube."""
+    centre, half = _lookat_box(views)
+    u = torch.rand(n, 3, generator=generator, dtype=torch.float64)
+    points = centre + (2 * u - 1) * half
+    return points.float(), torch.full((n, 3), 0.5)
+
+
+def init_points_from_masks(
+    views: list[View], n: int, resolution: int = 64, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor]:
+    """Sample ``n`` points on the surface of the visual hull carved by the views' masks.
+
+    A ``resolution``^3 voxel grid over the cameras' look-at cube is carved: a voxel survives if it
+    lies in front of every camera, inside every image and inside every mask. Points are drawn
+    uniformly inside the hull's boundary voxels (those with a carved neighbour among their 26); their colour is
+    the mean of the training colour ``s0 / 2`` at their projections.
+
+    Args:
+        views: views with ``mask`` set (views without a mask do not carve).
+        n: number of points.
+        resolution: voxels per side.
+        generator: random generator for the sampling.
+
+    Returns:
+        points (n, 3) float32 and colors (n, 3) float32 in [0, 1]. Without any mask, or when the
+        carving leaves nothing, falls back to :func:`init_points_in_box`.
+    """
+    masked = [v for v in views if v.mask is not None]
+    if not masked:
+        return init_points_in_box(views, n, generator)
+    centre, half = _lookat_box(views)
+    step = 2 * half / resolution
+    axis = torch.arange(resolution, dtype=torch.float64) * step - half + step / 2
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1).reshape(-1, 3) + centre
+    inside = torch.ones(grid.shape[0], dtype=torch.bool)
+    for v in masked:
+        uv, z = _project(grid, v)
+        col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        ok = (z > 0) & (col >= 0) & (col < v.width) & (row >= 0) & (row < v.height)
+        hit = torch.zeros_like(ok)
+        hit[ok] = v.mask[0].cpu()[row[ok], col[ok]].bool()
+        inside &= hit
+    occ = inside.reshape(resolution, resolution, resolution)
+    if not bool(occ.any()):
+        return init_points_in_box(views, n, generator)
+    padded = torch.nn.functional.pad(occ[None, None].float(), (1, 1, 1, 1, 1, 1))
+    full = -torch.nn.functional.max_pool3d(-padded, 3, stride=1)[0, 0] > 0.5  # erosion
+    shell = (occ & ~full).reshape(-1)
+    centres = grid[shell if bool(shell.any()) else inside]
+    pick = torch.randint(0, centres.shape[0], (n,), generator=generator)
+    jitter = (torch.rand(n, 3, generator=generator, dtype=torch.float64) - 0.5) * step
+    points = centres[pick] + jitter
+    color_sum = torch.zeros(n, 3, dtype=torch.float64)
+    color_count = torch.zeros(n, 1, dtype=torch.float64)
+    for v in views:
+        uv, z = _project(points, v)
+        col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        ok = (z > 0) & (col >= 0) & (col < v.width) & (row >= 0) & (row < v.height)
+        image = v.image.double().cpu()
+        if image.shape[0] == 1:
+            image = image.expand(3, -1, -1)
+        color_sum[ok] += image[:, row[ok], col[ok]].T
+        color_count[ok] += 1
+    colors = (color_sum / color_count.clamp_min(1)).clamp(0, 1)
+    colors[color_count[:, 0] == 0] = 0.5
+    return points.float(), colors.float()

@@ -1,0 +1,144 @@
+"""The reference Gaussian rasterizer: plain tensors in, :class:`~polargs_plugin.types.RenderOut` out.
+
+Pipeline: :func:`~.projection.project_gaussians` (EWA, differentiable) ->
+:func:`~.binning.bin_gaussians` (no grad, one sort) -> compositing, either the exact pure-torch
+two-pass path (:mod:`.composite_torch`, any device) or the compiled CPU kernel
+(:mod:`.composite_numba`, same rule, hand-written backward). The compositing rule is stated in
+:mod:`.composite_torch`.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from ...types import RenderOut
+from .binning import bin_gaussians
+from .composite_torch import composite_torch
+from .projection import eval_sh, project_gaussians
+
+__all__ = ["rasterize", "resolve_backend"]
+
+Backend = Literal["auto", "torch", "numba"]
+
+
+def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", "numba"]:
+    """The compositing path ``backend`` selects on ``device``.
+
+    "auto" picks the Numba kernel on CPU (about 4x faster per iteration than the torch path,
+    see bench/rasterizer.py) when numba imports, else the torch path; on CUDA always torch.
+    """
+    if backend not in ("auto", "torch", "numba"):
+        raise ValueError(f"backend must be 'auto', 'torch' or 'numba', got {backend!r}")
+    if backend == "numba" and device.type != "cpu":
+        raise ValueError(f"backend='numba' runs on CPU tensors only, got device {device}")
+    if backend == "auto":
+        if device.type != "cpu":
+            return "torch"
+        try:
+            from . import composite_numba  # noqa: F401
+        except ImportError:
+            return "torch"
+        return "numba"
+    return backend
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    K: Tensor,
+    world_to_camera: Tensor,
+    width: int,
+    height: int,
+    *,
+    background: Tensor | None = None,
+    near: float = 0.01,
+    far: float = 100.0,
+    tile_size: int = 16,
+    backend: Backend = "auto",
+) -> RenderOut:
+    """Render N 3D Gaussians into one pinhole camera.
+
+    Args:
+        means: (N, 3) world positions.
+        quats: (N, 4) rotations, wxyz (normalised here).
+        scales: (N, 3) positive scales (standard deviations along the Gaussian's axes).
+        opacities: (N,) in (0, 1).
+        colors: (N, 3) RGB, or (N, K, 3) SH coefficients with K = (d + 1)^2, d <= 3, evaluated
+            at the direction from the camera centre to each mean (3DGS convention: + 0.5,
+            clamped at 0).
+        K: (3, 3) intrinsics, pixel centres at +0.5.
+        world_to_camera: (4, 4) OpenCV world-to-camera transform.
+        width, height: image size in pixels.
+        background: optional (3,) colour composited behind the Gaussians.
+        near, far: Gaussians whose mean camera z is outside [near, far] are culled.
+        tile_size: tile edge in pixels for binning.
+        backend: "torch" (exact reference, CPU or CUDA), "numba" (compiled CPU kernel) or
+            "auto" (numba on CPU when available, torch otherwise).
+
+    Returns:
+        :class:`RenderOut`:
+
+        - color (3, H, W), with ``background`` composited behind when given;
+        - depth (1, H, W) expected camera z normalised by alpha (0 where alpha = 0); a
+          Gaussian's depth at a pixel is the camera z of its maximum-density point on the
+          pixel's ray (see :mod:`.projection`), so flat splats render their plane;
+        - median_depth (1, H, W) depth of the Gaussian where transmittance first drops below
+          0.5 (0 where it never does);
+        - normal (3, H, W) camera-frame shortest axes flipped to face the camera centre
+          (n . mean_cam < 0, which is n_z < 0 near the optical axis), composited with the
+          colour weights, not renormalised;
+        - alpha (1, H, W);
+        - means2d (N, 2) projected means in pixels; after backward ``.grad`` holds dL/dmeans2d
+          (when the inputs require grad);
+        - radii (N,) int64 opacity-aware screen radius in pixels (larger half-width of the box
+          bounding alpha >= 1/255), 0 = culled by near/far or off-screen.
+    """
+    n = means.shape[0]
+    if means.shape != (n, 3) or quats.shape != (n, 4) or scales.shape != (n, 3) or opacities.shape != (n,):
+        raise ValueError(
+            "expected means (N,3), quats (N,4), scales (N,3), opacities (N,); got "
+            f"{tuple(means.shape)}, {tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(opacities.shape)}"
+        )
+    if colors.shape[0] != n or colors.shape[-1] != 3 or colors.dim() not in (2, 3):
+        raise ValueError(f"colors must be (N,3) or (N,K,3) with N={n}, got {tuple(colors.shape)}")
+    path = resolve_backend(backend, means.device)
+
+    proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far)
+    if colors.dim() == 3:
+        w2c = world_to_camera.to(means)
+        camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
+        colors = eval_sh(colors, means - camera_center)
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+
+    bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
+    if path == "numba":
+        from .composite_numba import composite_numba
+
+        comp = composite_numba(proj, opacities, colors, bins, width, height)
+    else:
+        comp = composite_torch(proj, opacities, colors, bins, width, height)
+
+    color = comp.color
+    if background is not None:
+        color = color + (1.0 - comp.alpha) * background.to(color).reshape(3, 1, 1)
+    # Covered pixels have alpha >= 1/255, so the clamp only turns 0/0 into 0.
+    depth = comp.depth / comp.alpha.clamp_min(1e-6)
+    radius = torch.ceil(proj.extents.max(dim=-1).values)
+    radii = torch.where(bins.visible, radius, torch.zeros_like(radius)).long()
+    return RenderOut(
+        color=color,
+        depth=depth,
+        normal=comp.normal,
+        alpha=comp.alpha,
+        median_depth=comp.median_depth,
+        means2d=means2d,
+        radii=radii,
+    )

@@ -1,0 +1,210 @@
+"""Vanilla 3DGS adaptive density control as a strategy object with an explicit state (gsplat style).
+
+Per iteration, after ``backward()``, :meth:`DensityControl.update` accumulates the screen-space
+positional gradient norm of every visible Gaussian (in NDC units, as vanilla 3DGS: pixel
+gradients times ``(W / 2, H / 2)``). After the optimizer step, :meth:`DensityControl.step`
+refines on the schedule:
+
+- clone Gaussians whose mean gradient exceeds ``grow_grad2d`` and whose largest scale is at most
+  ``grow_scale3d * extent``; split (2 samples, scales / 1.6) the larger ones;
+- prune opacity below ``prune_opa`` and, after the first opacity reset, Gaussians larger than
+  ``prune_scale3d * extent`` in the world or ``prune_screen_px`` on screen;
+- every ``reset_every`` iterations clamp opacities to ``2 * prune_opa`` (unless
+  ``opacity_reset`` is off: at vanilla learning rates opacities need a few hundred iterations
+  to recover from a reset whatever the schedule factor, so very short runs skip it).
+
+Iterations are 1-based as in vanilla 3DGS. Every schedule number is multiplied by one factor
+(:meth:`DensityConfig.scaled`) so that CPU runs can be short.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from polargs_plugin.backends.reference.model import PARAM_NAMES, GaussianModel
+from polargs_plugin.types import RenderOut
+
+__all__ = ["DensityConfig", "DensityControl"]
+
+
+@dataclass
+class DensityConfig:
+    """Vanilla 3DGS densification settings (``arguments/__init__.py``, ``densify_and_prune``)."""
+
+    grow_grad2d: float = 2e-4
+    grow_scale3d: float = 0.01  # percent_dense
+    split_samples: int = 2
+    split_scale_divisor: float = 1.6  # 0.8 * split_samples
+    prune_opa: float = 0.005
+    prune_scale3d: float = 0.1
+    prune_screen_px: float = 20.0
+    refine_start: int = 500
+    refine_stop: int = 15_000
+    refine_every: int = 100
+    reset_every: int = 3000
+    opacity_reset: bool = True
+    max_gaussians: int | None = None  # no growth beyond this count (None: unlimited, as vanilla)
+
+    def scaled(self, factor: float) -> "DensityConfig":
+        """A copy with start, stop, interval and reset interval multiplied by ``factor``."""
+        if factor <= 0:
+            raise ValueError(f"DensityConfig.scaled: factor must be positive, got {factor}")
+        return replace(
+            self,
+            refine_start=round(self.refine_start * factor),
+            refine_stop=round(self.refine_stop * factor),
+            refine_every=max(1, round(self.refine_every * factor)),
+            reset_every=max(1, round(self.reset_every * factor)),
+        )
+
+
+class DensityControl:
+    """Vanilla clone / split / prune / opacity reset with an explicit, checkpointable state.
+
+    Args:
+        config: thresholds and (already scaled) schedule.
+        extent: scene extent (world-size thresholds are relative to it).
+
+    State (``state_dict()``): ``grad2d`` (N,) summed NDC gradient norms, ``count`` (N,) number of
+    accumulations, ``max_radii`` (N,) largest screen radius in pixels since the last refinement.
+    """
+
+    def __init__(self, config: DensityConfig, extent: float):
+        self.config = config
+        self.extent = float(extent)
+        self.state: dict[str, Tensor | None] = {"grad2d": None, "count": None, "max_radii": None}
+
+    # -------------------------------------------------------------------- statistics
+    def _ensure(self, n: int, device: torch.device) -> None:
+        if self.state["grad2d"] is None or self.state["grad2d"].shape[0] != n:
+            if self.state["grad2d"] is not None:
+                raise RuntimeError(
+                    f"DensityControl: statistics track {self.state['grad2d'].shape[0]} Gaussians but the model "
+                    f"has {n}; call pad() after appending"
+                )
+            self.state = {k: torch.zeros(n, device=device) for k in ("grad2d", "count", "max_radii")}
+
+    def update(self, render: RenderOut, width: int, height: int, iteration: int) -> None:
+        """Accumulate statistics from a render whose ``means2d.grad`` is populated (after backward).
+
+        Does nothing outside ``iteration < refine_stop`` (vanilla).
+        """
+        if iteration >= self.config.refine_stop:
+            return
+        if render.means2d is None or render.means2d.grad is None or render.radii is None:
+            raise RuntimeError("DensityControl.update: the render has no means2d gradient or radii")
+        grad = render.means2d.grad.detach()
+        self._ensure(grad.shape[0], grad.device)
+        visible = render.radii > 0
+        scale = grad.new_tensor([width / 2.0, height / 2.0])
+        norms = (grad[visible] * scale).norm(dim=-1)
+        self.state["grad2d"][visible] += norms
+        self.state["count"][visible] += 1
+        self.state["max_radii"][visible] = torch.maximum(
+            self.state["max_radii"][visible], render.radii[visible].to(self.state["max_radii"])
+        )
+
+    def pad(self, m: int) -> None:
+        """Extend the statistics with ``m`` zero rows (after ``GaussianModel.append``)."""
+        if self.state["grad2d"] is None:
+            return
+        self.state = {k: torch.cat([v, v.new_zeros(m)]) for k, v in self.state.items()}
+
+    # -------------------------------------------------------------------- refinement
+    def step(self, model: GaussianModel, iteration: int) -> dict[str, int]:
+        """Refine ``model`` if the schedule says so (call after the optimizer step).
+
+        Returns:
+            ``{"refined", "cloned", "split", "pruned", "reset"}``: flags and counts (zeros when
+            nothing ran).
+        """
+        c = self.config
+        out = {"refined": 0, "cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+        if iteration >= c.refine_stop:
+            return out
+        if iteration > c.refine_start and iteration % c.refine_every == 0 and self.state["grad2d"] is not None:
+            out.update(self.refine(model, prune_large=iteration > c.reset_every), refined=1)
+        if c.opacity_reset and iteration % c.reset_every == 0:
+            model.reset_opacity(2 * c.prune_opa)
+            out["reset"] = 1
+        return out
+
+    @torch.no_grad()
+    def refine(self, model: GaussianModel, prune_large: bool) -> dict[str, int]:
+        """One clone + split + prune pass from the accumulated statistics; statistics reset to zero."""
+        c = self.config
+        self._ensure(model.num, model.means.device)
+        grads = self.state["grad2d"] / self.state["count"].clamp_min(1)
+        high = grads >= c.grow_grad2d
+        small = model.scales.max(dim=1).values <= c.grow_scale3d * self.extent
+        clone, split = high & small, high & ~small
+        if c.max_gaussians is not None:
+            clone, split = self._limit_growth(clone, split, model.num, grads)
+        n_clone, n_split = int(clone.sum()), int(split.sum())
+        self._clone(model, clone)
+        self._split(model, torch.cat([split, split.new_zeros(n_clone)]))
+
+        prune = model.opacities < c.prune_opa
+        if prune_large:
+            prune |= model.scales.max(dim=1).values > c.prune_scale3d * self.extent
+            prune |= self.state["max_radii"] > c.prune_screen_px
+        n_prune = int(prune.sum())
+        if n_prune:
+            self._keep(model, ~prune)
+        self.state = {k: torch.zeros_like(v) for k, v in self.state.items()}
+        return {"cloned": n_clone, "split": n_split, "pruned": n_prune}
+
+    def _limit_growth(self, clone: Tensor, split: Tensor, n: int, grads: Tensor) -> tuple[Tensor, Tensor]:
+        """Keep only the highest-gradient candidates so that N does not exceed ``max_gaussians``."""
+        budget = max(int(self.config.max_gaussians) - n, 0)  # a split adds one, a clone adds one
+        grow = clone | split
+        if int(grow.sum()) <= budget:
+            return clone, split
+        order = torch.argsort(torch.where(grow, grads, grads.new_full((), -1.0)), descending=True)
+        chosen = torch.zeros_like(grow)
+        chosen[order[:budget]] = True
+        return clone & chosen, split & chosen
+
+    def _clone(self, model: GaussianModel, sel: Tensor) -> None:
+        m = int(sel.sum())
+        if m == 0:
+            return
+        model.extend({name: getattr(model, name).detach()[sel] for name in PARAM_NAMES})
+        self.state = {k: torch.cat([v, v[sel]]) for k, v in self.state.items()}
+
+    def _split(self, model: GaussianModel, sel: Tensor) -> None:
+        m = int(sel.sum())
+        if m == 0:
+            return
+        k = self.config.split_samples
+        scales = model.scales.detach()[sel].repeat(k, 1)
+        rot = model.rotation_matrices()[sel].repeat(k, 1, 1)
+        offsets = torch.bmm(rot, (torch.randn_like(scales) * scales).unsqueeze(-1)).squeeze(-1)
+        rows = {name: _repeat_rows(getattr(model, name).detach()[sel], k) for name in PARAM_NAMES}
+        rows["means"] = rows["means"] + offsets
+        rows["log_scales"] = torch.log(scales / self.config.split_scale_divisor)
+        model.extend(rows)
+        self.state = {key: torch.cat([v, _repeat_rows(v[sel], k)]) for key, v in self.state.items()}
+        self._keep(model, torch.cat([~sel, sel.new_ones(m * k)]))
+
+    def _keep(self, model: GaussianModel, mask: Tensor) -> None:
+        model.keep(mask)
+        self.state = {k: v[mask] for k, v in self.state.items()}
+
+    # ------------------------------------------------------------------ persistence
+    def state_dict(self) -> dict:
+        return {k: (None if v is None else v.detach().clone()) for k, v in self.state.items()}
+
+    def load_state_dict(self, state: dict) -> None:
+        unknown = set(state) - set(self.state)
+        if unknown:
+            raise KeyError(f"DensityControl.load_state_dict: unknown keys {sorted(unknown)}")
+        self.state = {k: (None if state.get(k) is None else state[k].clone()) for k in self.state}
+
+
+def _repeat_rows(t: Tensor, k: int) -> Tensor:
+    """Stack ``k`` copies of ``t`` along dim 0 (copy j of row i at j * len(t) + i)."""
+    return t.repeat(k, *([1] * (t.ndim - 1)))

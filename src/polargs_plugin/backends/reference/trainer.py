@@ -1,0 +1,398 @@
+"""The reference trainer: vanilla 3DGS optimisation with the PolarGS hook points.
+
+One iteration (1-based, as in vanilla 3DGS ``train.py``):
+
+1. position learning rate for this iteration; SH degree + 1 every ``sh_increase_every``;
+2. pick the next view of a shuffled stack (refilled when empty);
+3. render, clamp the colour to [0, 1], base loss ``(1 - w) L1 + w (1 - SSIM)`` against the
+   training colour ``s0 / 2`` (outside the object mask replaced by the background colour);
+4. **loss hook**: ``extra, logs = hooks.loss(it, view, render, gaussians)``; ``loss += extra``;
+5. ``backward()``; densification statistics; Adam step;
+6. under ``no_grad``: vanilla density control, then the **densify hook**
+   ``hooks.densify(it, view, render_fn, gaussians)`` whose result is appended.
+
+With ``hooks=None`` no PolarGS code runs at all: that is the Base of every ablation.
+``hooks.preprocess(views)`` runs once before the first iteration.
+
+The random state (global torch / numpy / python generators, which the split sampling and the
+hooks use, plus the view-order generator) is seeded from ``TrainConfig.seed`` and saved in
+checkpoints, so a resumed run continues exactly like an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import random
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from kornia.losses import ssim_loss
+from torch import Tensor
+from tqdm import tqdm
+
+from polargs_plugin.backends.reference.model import (
+    GaussianModel,
+    LearningRates,
+    init_points_from_masks,
+    scene_extent,
+)
+from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
+from polargs_plugin.io import PolarInputError, atomic_path
+from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
+
+__all__ = ["TrainConfig", "Trainer", "TrainingHooks", "CHECKPOINT_FORMAT"]
+
+CHECKPOINT_FORMAT = "polargs-reference-checkpoint-v1"
+
+
+class TrainingHooks(Protocol):
+    """What the trainer calls on ``hooks`` (``polargs_plugin.hooks.PolarHooks`` implements it)."""
+
+    def preprocess(self, views: list[View]) -> Any: ...
+
+    def loss(self, iteration: int, view: View, render: RenderOut, gaussians: GaussianState) -> tuple[Tensor, dict]: ...
+
+    def densify(self, iteration: int, view: View, render_fn, gaussians: GaussianState) -> NewGaussians | None: ...
+
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
+
+@dataclass
+class TrainConfig:
+    """Reference-trainer settings. Defaults are vanilla 3DGS (30k iterations, SH degree 3).
+
+    ``schedule_scale`` is the ONE factor that shortens every schedule: the density-control
+    start / stop / interval / opacity-reset interval, the SH-degree interval and the length of
+    the position learning-rate decay. Use :meth:`cpu` for short CPU runs.
+    """
+
+    iterations: int = 30_000
+    schedule_scale: float = 1.0
+    sh_degree: int = 3
+    sh_increase_every: int = 1000
+    seed: int = 0
+    ssim_weight: float = 0.2
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    use_masks: bool = True
+    num_init_points: int = 10_000
+    init_resolution: int = 64
+    initial_opacity: float = 0.1
+    lrs: LearningRates = field(default_factory=LearningRates)
+    density: DensityConfig = field(default_factory=DensityConfig)
+    device: str = "cpu"
+    backend: str = "auto"
+    progress: bool = True
+
+    @classmethod
+    def paper(cls, **overrides: Any) -> "TrainConfig":
+        """Vanilla 3DGS schedule (30k iterations, SH degree 3)."""
+        return dataclasses.replace(cls(), **overrides)
+
+    @classmethod
+    def cpu(cls, factor: float = 0.02, **overrides: Any) -> "TrainConfig":
+        """Every schedule multiplied by ``factor`` (default: 600 iterations, refinement every 2
+        from 10 to 300) for a CPU run of minutes at 128x128: SH degree 1, 2000 initial points,
+        at most 6000 Gaussians and no opacity reset (see :class:`DensityConfig`)."""
+        cfg = cls(
+            iterations=round(30_000 * factor),
+            schedule_scale=factor,
+            sh_degree=1,
+            num_init_points=2000,
+            density=DensityConfig(max_gaussians=6000, opacity_reset=False),
+        )
+        return dataclasses.replace(cfg, **overrides)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
+        """Inverse of :meth:`to_dict`."""
+        data = dict(data)
+        lrs = LearningRates(**data.pop("lrs", {}))
+        density = DensityConfig(**data.pop("density", {}))
+        if "background" in data:
+            data["background"] = tuple(data["background"])
+        return cls(lrs=lrs, density=density, **data)
+
+
+class Trainer:
+    """Vanilla 3DGS training of the reference :class:`GaussianModel` with optional PolarGS hooks.
+
+    Args:
+        views: training views (``view.image`` = s0 / 2 is the colour target; mono images are
+            repeated to RGB).
+        config: settings (default :class:`TrainConfig`).
+        hooks: an object with ``preprocess / loss / densify / state_dict / load_state_dict``
+            (e.g. ``PolarHooks``), or None for plain 3DGS.
+        init_points: optional ((N, 3) points, (N, 3) colours in [0, 1]), e.g. SfM points.
+            Default: points on the visual hull of the masks (:func:`init_points_from_masks`).
+
+    Note: constructing a trainer seeds the global torch, numpy and python generators.
+    """
+
+    def __init__(
+        self,
+        views: list[View],
+        config: TrainConfig | None = None,
+        hooks: TrainingHooks | None = None,
+        init_points: tuple[Tensor, Tensor] | None = None,
+    ):
+        if not views:
+            raise ValueError("Trainer: no training views")
+        self.config = config or TrainConfig()
+        cfg = self.config
+        _seed_everything(cfg.seed)
+        self.device = torch.device(cfg.device)
+        self.views = [v.to(self.device) for v in views]
+        self.hooks = hooks
+        self.extent = scene_extent(self.views)
+        self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
+        self.targets = [self._target(v) for v in self.views]
+        factor = cfg.schedule_scale
+        self.sh_interval = max(1, round(cfg.sh_increase_every * factor))
+        lrs = dataclasses.replace(cfg.lrs, means_max_steps=max(1, round(cfg.lrs.means_max_steps * factor)))
+        if init_points is None:
+            init_points = init_points_from_masks(self.views, cfg.num_init_points, cfg.init_resolution)
+        points, colors = init_points
+        self.model = GaussianModel.from_points(
+            points.to(self.device),
+            colors.to(self.device),
+            sh_degree=cfg.sh_degree,
+            extent=self.extent,
+            initial_opacity=cfg.initial_opacity,
+            lrs=lrs,
+        )
+        self.density = DensityControl(cfg.density.scaled(factor), self.extent)
+        self.iteration = 0
+        self._sampler = torch.Generator().manual_seed(cfg.seed)
+        self._order: list[int] = []
+        self._prepared = False
+        self.polar_maps: Any = None
+        self.last_logs: dict[str, float] = {}
+
+    # --------------------------------------------------------------------- pieces
+    def _target(self, view: View) -> Tensor:
+        image = view.image.float().clamp(0, 1)
+        if image.shape[0] == 1:
+            image = image.expand(3, -1, -1)
+        if image.shape[0] != 3:
+            raise PolarInputError(view.source or view.name, f"expected 1 or 3 colour channels, got {image.shape[0]}")
+        if self.config.use_masks and view.mask is not None:
+            m = view.mask.to(image).reshape(1, view.height, view.width)
+            image = image * m + self.background.reshape(3, 1, 1) * (1 - m)
+        return image.contiguous()
+
+    def render(self, view: View) -> RenderOut:
+        """Render ``view`` with the trainer's background; colour clamped to [0, 1] (as vanilla)."""
+        out = self.model.render(view, background=self.background, backend=self.config.backend)
+        return dataclasses.replace(out, color=out.color.clamp(0, 1))
+
+    def _prepare(self) -> None:
+        if not self._prepared:
+            if self.hooks is not None:
+                self.polar_maps = self.hooks.preprocess(self.views)
+            self._prepared = True
+
+    def _next_view(self) -> int:
+        if not self._order:
+            self._order = torch.randperm(len(self.views), generator=self._sampler).tolist()
+        return self._order.pop()
+
+    def base_loss(self, image: Tensor, target: Tensor) -> Tensor:
+        """``(1 - w) L1 + w (1 - SSIM)`` (vanilla 3DGS; kornia's ssim_loss is (1 - SSIM) / 2)."""
+        w = self.config.ssim_weight
+        l1 = (image - target).abs().mean()
+        dssim = 2.0 * ssim_loss(image[None], target[None], window_size=11)
+        return (1.0 - w) * l1 + w * dssim
+
+    # --------------------------------------------------------------------- training
+    def step(self) -> dict[str, float]:
+        """Run one iteration; returns ``{"loss", "psnr", "num"}`` plus the hooks' logs."""
+        self._prepare()
+        cfg, model = self.config, self.model
+        it = self.iteration + 1
+        model.update_learning_rate(it)
+        if it % self.sh_interval == 0:
+            model.active_sh_degree = min(model.active_sh_degree + 1, model.max_sh_degree)
+        index = self._next_view()
+        view, target = self.views[index], self.targets[index]
+
+        render = self.render(view)
+        loss = self.base_loss(render.color, target)
+        logs: dict[str, float] = {}
+        if self.hooks is not None:
+            extra, hook_logs = self.hooks.loss(it, view, render, model.state())
+            loss = loss + extra
+            logs.update({k: float(v) for k, v in (hook_logs or {}).items()})
+        loss.backward()
+        self.density.update(render, view.width, view.height, it)
+        model.optimizer.step()
+        model.optimizer.zero_grad(set_to_none=True)
+
+        with torch.no_grad():
+            refined = self.density.step(model, it)
+            if self.hooks is not None:
+                new = self.hooks.densify(it, view, self.render, model.state())
+                if new is not None and len(new) > 0:
+                    model.append(new)
+                    self.density.pad(len(new))
+                    logs["appended"] = float(len(new))
+            mse = float(((render.color.detach() - target) ** 2).mean())
+        self.iteration = it
+        logs.update(
+            loss=float(loss.detach()),
+            psnr=_psnr(mse),
+            num=float(model.num),
+            **{k: float(v) for k, v in refined.items() if v},
+        )
+        self.last_logs = logs
+        return logs
+
+    def train(self, until: int | None = None, checkpoint: str | Path | None = None, checkpoint_every: int = 0) -> dict[str, Any]:
+        """Train up to iteration ``until`` (default ``config.iterations``).
+
+        Args:
+            until: last iteration to run (a run can be stopped early and resumed later).
+            checkpoint: where to save a checkpoint at the end (and every ``checkpoint_every``).
+            checkpoint_every: iterations between intermediate checkpoints (0 = only at the end).
+
+        Returns:
+            final figures: ``iterations``, ``num_gaussians``, ``psnr`` (mean over all training
+            views, against the masked targets), ``loss`` (smoothed), ``seconds``, ``extent``
+            and the last hook logs.
+        """
+        end = self.config.iterations if until is None else int(until)
+        self._prepare()
+        start_time = time.perf_counter()
+        ema_loss = ema_psnr = None
+        bar = tqdm(
+            total=end,
+            initial=self.iteration,
+            desc="train",
+            unit="it",
+            disable=not self.config.progress,
+            dynamic_ncols=True,
+        )
+        with bar:
+            while self.iteration < end:
+                logs = self.step()
+                ema_loss = logs["loss"] if ema_loss is None else 0.6 * ema_loss + 0.4 * logs["loss"]
+                ema_psnr = logs["psnr"] if ema_psnr is None else 0.6 * ema_psnr + 0.4 * logs["psnr"]
+                bar.update(1)
+                if self.iteration % 10 == 0 or self.iteration == end:
+                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", n=self.model.num)
+                if checkpoint is not None and checkpoint_every > 0 and self.iteration % checkpoint_every == 0:
+                    self.save_checkpoint(checkpoint)
+        seconds = time.perf_counter() - start_time
+        if checkpoint is not None:
+            self.save_checkpoint(checkpoint)
+        return {
+            "iterations": self.iteration,
+            "num_gaussians": self.model.num,
+            "psnr": self.evaluate(),
+            "loss": ema_loss,
+            "seconds": seconds,
+            "extent": self.extent,
+            "hook_logs": {k: v for k, v in self.last_logs.items() if k not in ("loss", "psnr", "num")},
+        }
+
+    @torch.no_grad()
+    def evaluate(self) -> float:
+        """Mean PSNR (dB) of the rendered training views against their (masked) targets."""
+        values = [_psnr(float(((self.render(v).color - t) ** 2).mean())) for v, t in zip(self.views, self.targets)]
+        return float(np.mean(values))
+
+    # ------------------------------------------------------------------ checkpoints
+    def save_checkpoint(self, path: str | Path) -> Path:
+        """Write everything needed to resume (atomic: the file is complete or absent)."""
+        path = Path(path)
+        data = {
+            "format": CHECKPOINT_FORMAT,
+            "iteration": self.iteration,
+            "config": self.config.to_dict(),
+            "view_names": [v.name for v in self.views],
+            "model": self.model.checkpoint(),
+            "density": self.density.state_dict(),
+            "hooks": None if self.hooks is None else self.hooks.state_dict(),
+            "rng": {
+                "torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+                "numpy": _numpy_state_to_dict(np.random.get_state()),
+                "python": random.getstate(),
+                "sampler": self._sampler.get_state(),
+                "order": list(self._order),
+            },
+        }
+        with atomic_path(path) as tmp:
+            torch.save(data, tmp)
+        return path
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        """Restore a checkpoint written by :meth:`save_checkpoint` into this trainer.
+
+        The trainer must have been built on the same views (names are checked); the
+        configuration passed at construction is kept (so ``iterations`` may be raised).
+        Only load checkpoints from trusted sources (``torch.load`` with ``weights_only=True``).
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise PolarInputError(path, "checkpoint file not found")
+        try:
+            data = torch.load(path, map_location=self.device, weights_only=True)
+        except Exception as err:  # truncated, not a torch file, or disallowed types
+            raise PolarInputError(path, f"cannot read checkpoint ({type(err).__name__}: {err})") from err
+        if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+            raise PolarInputError(path, f"not a {CHECKPOINT_FORMAT} file")
+        names = [v.name for v in self.views]
+        if data["view_names"] != names:
+            raise PolarInputError(path, "checkpoint was trained on different views than the ones given")
+        if (self.hooks is None) != (data["hooks"] is None):
+            raise PolarInputError(
+                path, "checkpoint was trained " + ("without" if data["hooks"] is None else "with") + " hooks"
+            )
+        self._prepare()
+        self.model = GaussianModel.from_checkpoint(data["model"], lrs=self.model.lrs, device=self.device)
+        self.density.load_state_dict(data["density"])
+        if self.hooks is not None:
+            self.hooks.load_state_dict(data["hooks"])
+        self.iteration = int(data["iteration"])
+        rng = data["rng"]
+        torch.set_rng_state(rng["torch"].cpu())
+        if rng["cuda"] and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all([s.cpu() for s in rng["cuda"]])
+        np.random.set_state(_numpy_state_from_dict(rng["numpy"]))
+        random.setstate(_to_tuple(rng["python"]))
+        self._sampler.set_state(rng["sampler"].cpu())
+        self._order = [int(i) for i in rng["order"]]
+
+
+def _psnr(mse: float) -> float:
+    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
+
+
+def _seed_everything(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)
+    random.seed(seed)
+
+
+def _numpy_state_to_dict(state: tuple) -> dict:
+    kind, keys, pos, has_gauss, cached = state
+    return {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos), "has_gauss": int(has_gauss), "cached": float(cached)}
+
+
+def _numpy_state_from_dict(d: dict) -> tuple:
+    return (d["kind"], d["keys"].cpu().numpy().astype(np.uint32), d["pos"], d["has_gauss"], d["cached"])
+
+
+def _to_tuple(value: Any) -> Any:
+    """torch.load may return lists where tuples were saved; python's random wants tuples."""
+    return tuple(_to_tuple(v) for v in value) if isinstance(value, (list, tuple)) else value

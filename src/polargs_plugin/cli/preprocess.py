@@ -1,0 +1,129 @@
+"""``polargs preprocess``: compute and cache the PC maps of a dataset and draw them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+_EPILOG = """examples:
+  polargs preprocess scenes/sphere                      # writes scenes/sphere/preprocessed/
+  polargs preprocess data/frog --out /tmp/frog --format nersp
+  polargs preprocess scenes/sphere --config polar.json --no-pictures
+
+Writes DIR/cache/<view>-<hash>.pt (maps keyed by the content of the Stokes images, the mask and
+the correction settings: a rerun on unchanged input loads them) and, per view, DIR/pictures/
+<view>_masks.png (specular magenta, overexposed cyan over the image), _i_diff.png, _i_chro.png,
+_target.png (the colour target with I_diff / I_chro swapped in), _pri.png, _aolp.png (hue, DoLP
+as brightness), _dolp.png. Images are linear, as trained on.
+"""
+
+_SPECULAR_TINT = (1.0, 0.0, 1.0)
+_OVEREXPOSED_TINT = (0.0, 1.0, 1.0)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``preprocess`` subcommand."""
+    parser = subparsers.add_parser(
+        "preprocess",
+        help="compute, cache and draw the photometric-correction maps of a dataset",
+        description="Compute Stokes-derived AoLP/DoLP, specular and overexposed masks, PRI and the "
+        "colour refinement maps I_diff / I_chro of every view, cache them keyed by input content, "
+        "and write pictures.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("dataset", type=Path, help="dataset folder (any format polargs reads)")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default DATASET/preprocessed)")
+    parser.add_argument("--format", default="auto", help="dataset format (default: detect)")
+    parser.add_argument("--config", type=Path, default=None, help="PolarConfig as JSON (PolarConfig.to_dict layout)")
+    parser.add_argument("--no-pictures", action="store_true", help="only compute and cache the maps")
+    parser.set_defaults(func=run)
+
+
+def _load_config(path: Path | None):
+    from polargs_plugin.config import PolarConfig
+    from polargs_plugin.io import PolarInputError
+
+    if path is None:
+        return PolarConfig()
+    try:
+        return PolarConfig.from_dict(json.loads(path.read_text()))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        raise PolarInputError(path, f"not a valid PolarConfig JSON file ({err})") from None
+
+
+def _overlay(image: Tensor, masks: list[tuple[Tensor, tuple[float, float, float]]]) -> Tensor:
+    out = image.clamp(0, 1).clone()
+    for mask, tint in masks:
+        colour = torch.tensor(tint, dtype=out.dtype)[:, None, None]
+        out = torch.where(mask, 0.4 * out + 0.6 * colour, out)
+    return out
+
+
+def save_map_pictures(maps, out_dir: Path, prefix: str) -> list[Path]:
+    """Write the pictures of one view's :class:`~polargs_plugin.types.PolarMaps` (see the epilog).
+
+    Args:
+        maps: the view's maps (masks and CRMs may be ``None`` when PC is disabled).
+        out_dir: folder to write into.
+        prefix: file name prefix (the view name).
+
+    Returns:
+        The paths written.
+    """
+    from polargs_plugin.viz import aolp_to_rgb, dolp_to_rgb, save_png
+
+    maps_cpu = {name: value.detach().cpu().float() for name, value in vars(maps).items() if isinstance(value, Tensor)}
+    pictures = {
+        "aolp": aolp_to_rgb(maps_cpu["aolp"], maps_cpu["dolp"].clamp(0, 1), "dark"),
+        "dolp": dolp_to_rgb(maps_cpu["dolp"]),
+    }
+    if maps.specular_mask is not None:
+        specular = maps.specular_mask.cpu()
+        chro = (maps.overexposed_mask & maps.extras["i_chro_valid"]).cpu()
+        image = maps_cpu["intensity"]
+        pictures["masks"] = _overlay(image, [(specular, _SPECULAR_TINT), (maps.overexposed_mask.cpu(), _OVEREXPOSED_TINT)])
+        pictures["i_diff"] = maps_cpu["i_diff"]
+        pictures["i_chro"] = maps_cpu["i_chro"]
+        pictures["target"] = torch.where(specular, maps_cpu["i_diff"], torch.where(chro, maps_cpu["i_chro"], image))
+        pictures["pri"] = maps_cpu["pri"]
+    return [save_png(out_dir / f"{prefix}_{name}.png", picture.clamp(0, 1)) for name, picture in pictures.items()]
+
+
+def run(args: argparse.Namespace) -> int:
+    from polargs_plugin.data.registry import load_views
+    from polargs_plugin.hooks import PolarHooks
+    from polargs_plugin.io import PolarInputError
+
+    out = args.out if args.out is not None else args.dataset / "preprocessed"
+    try:
+        config = _load_config(args.config)
+        config.densify.enabled = False  # preprocessing only: no densifier to build
+        config.cache_dir = str(out / "cache")
+        views = load_views(args.dataset, args.format)
+        if not views:
+            raise PolarInputError(args.dataset, "the dataset holds no views")
+        maps = PolarHooks(config).preprocess(views)
+    except PolarInputError as err:
+        print(f"polargs preprocess: error: {err}", file=sys.stderr)
+        return 2
+    for view, view_maps in zip(views, maps):
+        line = f"{view.name}: {view.width}x{view.height}"
+        if view_maps.specular_mask is not None:
+            pixels = view.width * view.height
+            over = int(view_maps.overexposed_mask.sum())
+            filled = int(view_maps.extras["i_chro_valid"].sum())
+            line += (
+                f", specular {int(view_maps.specular_mask.sum()) / pixels:.1%}, overexposed {over / pixels:.1%}"
+                f" (I_chro found for {filled}/{over})"
+            )
+        if not args.no_pictures:
+            save_map_pictures(view_maps, out / "pictures", view.name)
+        print(line)
+    print(f"maps cached in {out / 'cache'}" + ("" if args.no_pictures else f", pictures in {out / 'pictures'}"))
+    return 0

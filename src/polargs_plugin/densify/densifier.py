@@ -1,0 +1,173 @@
+"""PolarDensifier: the Dense module on a training schedule (what PolarHooks.densify delegates to).
+
+On each scheduled iteration, for the current training view:
+
+1. choose ``num_sources`` source views by triangulation angle (view_selection.py);
+2. render the reference and the sources with ``render_fn``;
+3. run polar-enhanced PatchMatch initialised from the rendered depth and normal, with the view's
+   AoLP / DoLP (patchmatch.py);
+4. keep pixels whose photometric cost is below ``filters.max_photometric_cost`` and that are
+   multi-view geometrically and polarimetrically consistent (filters.py). The source depths are
+   this densifier's earlier PatchMatch depths of those views where it has them (cached), else
+   their rendered depths; so fills of holes shared by every render are confirmed only once
+   neighbouring views have been processed;
+5. store the kept normals as the L_n target ``N_opt`` of the view (:meth:`normal_target`);
+6. seed new Gaussians where the render has a hole or a wrong surface (seeding.py).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from polargs_plugin.config import PolarConfig
+from polargs_plugin.densify.filters import consistency_filter
+from polargs_plugin.densify.patchmatch import patchmatch
+from polargs_plugin.densify.seeding import seed_gaussians, seed_mask
+from polargs_plugin.densify.view_selection import scene_center, select_sources
+from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
+
+__all__ = ["PolarDensifier"]
+
+
+class PolarDensifier:
+    """Scheduled polar-enhanced PatchMatch densification.
+
+    Args:
+        config: PolarConfig (uses ``config.densify`` and its patchmatch / filters sections).
+        views: all training views (their cameras drive source selection).
+        maps: PolarMaps per view name (AoLP / DoLP); views without maps run without the AoLP term.
+    """
+
+    def __init__(self, config: PolarConfig, views: list[View], maps: dict[str, PolarMaps]):
+        if not views:
+            raise ValueError("PolarDensifier needs at least one view")
+        self.config = config
+        self.views = list(views)
+        self.maps = maps
+        self._index = {v.name: i for i, v in enumerate(self.views)}
+        self._w2c = torch.stack([v.world_to_camera.to(torch.float64).cpu() for v in self.views])
+        self._center = scene_center(self._w2c) if len(self.views) > 1 else None
+        self._depths: dict[str, Tensor] = {}
+        self._targets: dict[str, tuple[Tensor, Tensor]] = {}
+        self._generator = torch.Generator().manual_seed(config.densify.patchmatch.seed)
+        self.calls = 0
+
+    def should_run(self, iteration: int) -> bool:
+        """Whether ``iteration`` is on the schedule (start <= it <= end, it % interval == 0)."""
+        d = self.config.densify
+        return d.enabled and d.start_iter <= iteration <= d.end_iter and iteration % d.interval == 0
+
+    def __call__(
+        self, iteration: int, view: View, render_fn, gaussians: GaussianState | None = None
+    ) -> NewGaussians | None:
+        """Densify from ``view`` if ``iteration`` is scheduled.
+
+        Args:
+            iteration: training iteration.
+            view: the current training view (must be one of ``views`` by name).
+            render_fn: ``render_fn(view) -> RenderOut`` with the current Gaussians.
+            gaussians: the current Gaussians (unused by the algorithm; part of the hook API).
+
+        Returns:
+            NewGaussians to append (world frame), or None when nothing is to be added.
+        """
+        if not self.should_run(iteration):
+            return None
+        if view.name not in self._index:
+            raise KeyError(f"view '{view.name}' is not one of the densifier's views")
+        with torch.no_grad():
+            return self._densify(view, render_fn)
+
+    def _sources(self, ref: int) -> list[int]:
+        if self._center is None:
+            return []
+        pm = self.config.densify.patchmatch
+        chosen = select_sources(self._w2c[ref], self._w2c, pm.num_sources, self._center, exclude=ref)
+        if chosen:  # the NCC stacks sources, so they must share one size
+            size = self.views[chosen[0]].stokes.shape[-2:]
+            chosen = [j for j in chosen if self.views[j].stokes.shape[-2:] == size]
+        return chosen
+
+    def _densify(self, view: View, render_fn) -> NewGaussians | None:
+        cfg = self.config.densify
+        ref = self._index[view.name]
+        src = self._sources(ref)
+        if not src:
+            return None
+        render: RenderOut = render_fn(view)
+        dev = render.depth.device
+        src_views = [self.views[j] for j in src]
+        src_renders = [render_fn(v) for v in src_views]
+        ref_maps = self.maps.get(view.name)
+        mask = view.mask.to(dev) if (cfg.use_view_mask and view.mask is not None) else None
+        init_valid = render.alpha > cfg.alpha_threshold
+        if not (init_valid & (render.depth > 0)).any():
+            return None
+        gen = self._device_generator(dev)
+        result = patchmatch(
+            view.image.to(dev), view.K, view.world_to_camera,
+            torch.stack([v.image.to(dev) for v in src_views]),
+            torch.stack([v.K for v in src_views]), torch.stack([v.world_to_camera for v in src_views]),
+            render.depth, render.normal,
+            aolp=ref_maps.aolp.to(dev) if ref_maps is not None else None,
+            dolp=ref_maps.dolp.to(dev) if ref_maps is not None else None,
+            mask=mask, init_valid=init_valid, config=cfg.patchmatch, generator=gen,
+        )
+        photometric_ok = (result.photometric_cost <= cfg.filters.max_photometric_cost) & (result.depth > 0)
+        depth = torch.where(photometric_ok, result.depth, torch.zeros_like(result.depth))
+
+        src_depths = []
+        for v, r in zip(src_views, src_renders):
+            cached = self._depths.get(v.name)
+            rendered = torch.where(r.alpha > cfg.alpha_threshold, r.depth, torch.zeros_like(r.depth))
+            src_depths.append(cached.to(dev) if cached is not None else rendered)
+        all_maps = [self.maps.get(v.name) for v in [view] + src_views]
+        polar = all(m is not None for m in all_maps)
+        keep = consistency_filter(
+            [depth] + src_depths, [result.normal] + [r.normal for r in src_renders], [view] + src_views,
+            aolps=[m.aolp.to(dev) for m in all_maps] if polar else None,
+            dolps=[m.dolp.to(dev) for m in all_maps] if polar else None,
+            config=cfg.filters, reference=0,
+        )
+        self._depths[view.name] = depth.detach()
+        self._targets[view.name] = (result.normal.detach(), keep.detach())
+        self.calls += 1
+
+        seeds = seed_mask(keep, result.depth, render.depth, render.alpha,
+                          alpha_threshold=cfg.alpha_threshold, relative_depth=cfg.seed_relative_depth)
+        new = seed_gaussians(
+            result.depth, result.normal, view.image.to(dev), view.K, view.world_to_camera, seeds,
+            stride=cfg.stride, max_new=cfg.max_new_per_call, initial_opacity=cfg.initial_opacity,
+            thin_ratio=cfg.thin_scale_ratio, generator=self._generator,
+        )
+        return new if len(new) > 0 else None
+
+    def _device_generator(self, device: torch.device) -> torch.Generator:
+        """A generator on ``device`` seeded from the CPU stream (so runs are reproducible)."""
+        seed = int(torch.randint(0, 2**62, (1,), generator=self._generator))
+        gen = torch.Generator(device=device)
+        gen.manual_seed(seed)
+        return gen
+
+    def normal_target(self, view_name: str) -> tuple[Tensor, Tensor] | None:
+        """The latest PatchMatch normals ``N_opt`` of a view and where they are valid.
+
+        Returns:
+            (normal (3, H, W) camera frame, valid (1, H, W) bool), or None before the first run.
+        """
+        return self._targets.get(view_name)
+
+    def state_dict(self) -> dict:
+        return {
+            "calls": self.calls,
+            "generator": self._generator.get_state(),
+            "depths": {k: v.cpu() for k, v in self._depths.items()},
+            "targets": {k: {"normal": n.cpu(), "valid": m.cpu()} for k, (n, m) in self._targets.items()},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.calls = int(state["calls"])
+        self._generator.set_state(state["generator"])
+        self._depths = dict(state["depths"])
+        self._targets = {k: (v["normal"], v["valid"]) for k, v in state["targets"].items()}

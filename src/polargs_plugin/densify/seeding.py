@@ -1,0 +1,98 @@
+"""Back-project PatchMatch pixels into new Gaussians (PolarGS Dense seeding).
+
+Each seed is a flat Gaussian on the estimated surface: its shortest axis is the PatchMatch normal
+(world frame), its two tangent scales are the pixel footprint ``depth / focal`` times the
+sampling stride (so neighbouring seeds overlap), its normal scale ``thin_ratio`` times that; the
+colour is the observed training colour s0 / 2 at the pixel; the opacity is a finite constant.
+Seeds are placed only where the current model is missing (rendered alpha below a threshold) or
+wrong (rendered depth disagrees with PatchMatch), and at most ``max_new`` per call.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
+from torch import Tensor
+
+from polargs_plugin.densify.homography import pixel_rays
+from polargs_plugin.types import NewGaussians
+
+__all__ = ["seed_mask", "frames_from_normals", "seed_gaussians"]
+
+
+def seed_mask(
+    keep: Tensor, depth: Tensor, rendered_depth: Tensor, rendered_alpha: Tensor, *,
+    alpha_threshold: float = 0.5, relative_depth: float = 0.02,
+) -> Tensor:
+    """Filtered pixels where the render has a hole or a wrong surface.
+
+    Args:
+        keep: (1, H, W) bool pixels that passed the filters; depth: (1, H, W) PatchMatch depth.
+        rendered_depth, rendered_alpha: (1, H, W) from the current model.
+        alpha_threshold: below it the render counts as a hole.
+        relative_depth: |rendered - PatchMatch| / PatchMatch above it counts as a wrong surface.
+
+    Returns:
+        (1, H, W) bool.
+    """
+    hole = rendered_alpha < alpha_threshold
+    wrong = (rendered_depth - depth).abs() > relative_depth * depth
+    return keep & (depth > 0) & (hole | wrong)
+
+
+def frames_from_normals(normals: Tensor) -> Tensor:
+    """(N, 3, 3) right-handed rotations whose third column is the unit normal (N, 3)."""
+    n = F.normalize(normals, dim=-1)
+    # helper axis: the world axis least aligned with n keeps the cross product well conditioned
+    helper = torch.zeros_like(n)
+    helper.scatter_(1, n.abs().argmin(1, keepdim=True), 1.0)
+    t1 = F.normalize(torch.linalg.cross(helper, n, dim=-1), dim=-1)
+    t2 = torch.linalg.cross(n, t1, dim=-1)
+    return torch.stack([t1, t2, n], dim=-1)
+
+
+def seed_gaussians(
+    depth: Tensor, normal: Tensor, image: Tensor, K: Tensor, world_to_camera: Tensor, mask: Tensor,
+    *, stride: int = 2, max_new: int = 5000, initial_opacity: float = 0.5, thin_ratio: float = 0.1,
+    generator: torch.Generator | None = None,
+) -> NewGaussians:
+    """New Gaussians at the masked pixels of one view (on a ``stride`` grid, at most ``max_new``).
+
+    Args:
+        depth: (1, H, W) camera-z depth; normal: (3, H, W) camera-frame normal.
+        image: (C, H, W) colour in [0, 1] (C = 1 is repeated to RGB).
+        K: (3, 3); world_to_camera: (4, 4).
+        mask: (1, H, W) bool pixels to seed (e.g. :func:`seed_mask`).
+        stride: pixel spacing of the seeds; max_new: cap (random subset beyond it).
+        initial_opacity: opacity in (0, 1); thin_ratio: normal scale / tangent scale.
+        generator: for the random subset.
+
+    Returns:
+        NewGaussians in world coordinates (possibly empty), on ``depth``'s device.
+    """
+    if not 0.0 < initial_opacity < 1.0:
+        raise ValueError(f"initial_opacity must lie in (0, 1), got {initial_opacity}")
+    dev = depth.device
+    sub = torch.zeros_like(mask)
+    sub[:, ::stride, ::stride] = True
+    idx = (mask & sub & (depth > 0))[0].reshape(-1).nonzero().squeeze(-1)
+    if idx.numel() > max_new:
+        pick = torch.randperm(idx.numel(), generator=generator, device="cpu")[:max_new]
+        idx = idx[pick.to(dev)]
+    h, w = depth.shape[-2:]
+    K32 = K.to(dev, torch.float32)
+    R = world_to_camera[:3, :3].to(dev, torch.float32)
+    t = world_to_camera[:3, 3].to(dev, torch.float32)
+    d = depth.reshape(-1)[idx]
+    rays = pixel_rays(K32, h, w).reshape(3, -1)[:, idx]
+    means = ((d * rays).T - t) @ R  # R^T (X_cam - t), row-wise
+    n_world = normal.reshape(3, -1)[:, idx].T.float() @ R
+    quats = rotation_matrix_to_quaternion(frames_from_normals(n_world).contiguous())
+    footprint = d * stride / (0.5 * (K32[0, 0] + K32[1, 1]))
+    scales = torch.stack([footprint, footprint, thin_ratio * footprint], -1)
+    colours = image.reshape(image.shape[0], -1)[:, idx].T.float()
+    if colours.shape[1] == 1:
+        colours = colours.expand(-1, 3)
+    opacities = torch.full_like(d, initial_opacity)
+    return NewGaussians(means, quats, scales, colours.clamp(0, 1).contiguous(), opacities)

@@ -1,0 +1,291 @@
+"""PolarHooks: the four calls a 3DGS trainer makes to gain PolarGS (DESIGN.md §3).
+
+A trainer calls, in this order::
+
+    hooks = PolarHooks(config)
+    hooks.preprocess(views)                                   # once, before training
+    for it in ...:
+        render = render_fn(view)
+        loss = own_colour_loss(render.color, view.image)      # + the trainer's other terms
+        extra, logs = hooks.loss(it, view, render, gaussians)
+        (loss + extra).backward(); optimizer.step()
+        new = hooks.densify(it, view, render_fn, gaussians)   # NewGaussians or None
+        if new is not None: append(new)
+
+Ablations are config switches: ``correction.enabled`` (PC), ``densify.enabled`` (Dense) and
+``losses.use_ref / use_normal / use_depth_normal / use_scale``. With Dense off the densify
+package is never imported.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+import re
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from polargs_plugin.config import PolarConfig
+from polargs_plugin.correction import compute_polar_maps
+from polargs_plugin.io import atomic_path
+from polargs_plugin.losses import depth_normal_loss, normal_loss, reflective_replacement, scale_loss
+from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
+
+__all__ = ["PolarHooks", "maps_cache_key"]
+
+# Bump when compute_polar_maps changes its output for the same input: old cache files are ignored.
+_CACHE_VERSION = 1
+_MAP_FIELDS = ("aolp", "dolp", "intensity", "specular_mask", "overexposed_mask", "pri", "i_diff", "i_chro")
+
+
+def maps_cache_key(view: View, config: PolarConfig) -> str:
+    """SHA-256 of what the maps depend on: Stokes, object mask, correction settings, cache version.
+
+    Args:
+        view: the view (its Stokes and mask are hashed, not its name or camera).
+        config: settings; only ``config.correction`` enters the key.
+
+    Returns:
+        Hex digest.
+    """
+    digest = hashlib.sha256()
+    digest.update(json.dumps({"version": _CACHE_VERSION, "correction": asdict(config.correction)}).encode())
+    for tensor in (view.stokes, view.mask):
+        if tensor is None:
+            digest.update(b"none")
+            continue
+        array = tensor.detach().cpu().contiguous().numpy()
+        digest.update(f"{array.dtype}{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).data)
+    return digest.hexdigest()
+
+
+def _cache_file(cache_dir: Path, view: View, key: str) -> Path:
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", view.name)[:80]
+    return cache_dir / f"{stem}-{key[:24]}.pt"
+
+
+def _maps_to_dict(maps: PolarMaps) -> dict[str, Tensor]:
+    out = {name: getattr(maps, name) for name in _MAP_FIELDS if getattr(maps, name) is not None}
+    out.update({f"extras.{name}": value for name, value in maps.extras.items()})
+    return out
+
+
+def _maps_from_dict(data: dict[str, Tensor]) -> PolarMaps:
+    if not isinstance(data, dict) or any(name not in data for name in _MAP_FIELDS[:3]):
+        raise KeyError("cache entry lacks aolp/dolp/intensity")
+    extras = {name[len("extras.") :]: value for name, value in data.items() if name.startswith("extras.")}
+    return PolarMaps(**{name: data.get(name) for name in _MAP_FIELDS}, extras=extras)
+
+
+class PolarHooks:
+    """PolarGS as trainer hooks: preprocessing, extra losses, densification, state.
+
+    Args:
+        config: all settings (default: the paper's synthetic preset). ``config.cache_dir`` set
+            means preprocess caches its maps there, keyed by :func:`maps_cache_key`.
+    """
+
+    def __init__(self, config: PolarConfig | None = None) -> None:
+        self.config = config or PolarConfig()
+        self.maps: dict[str, PolarMaps] = {}
+        self._densifier: Any = None
+        self._pending_state: dict[str, Any] | None = None
+        self._on_device: dict[tuple[str, str], dict[str, Tensor]] = {}
+
+    # ----------------------------------------------------------------------------- preprocess
+    def preprocess(self, views: list[View]) -> list[PolarMaps]:
+        """Compute (or load from the cache) every view's :class:`PolarMaps`; build the densifier.
+
+        Args:
+            views: the training views (unique names).
+
+        Returns:
+            One :class:`PolarMaps` per view, in order.
+        """
+        names = [view.name for view in views]
+        if len(set(names)) != len(names):
+            raise ValueError("view names must be unique: the maps are looked up by name")
+        self._on_device.clear()
+        self.maps = {view.name: self._load_or_compute(view) for view in views}
+        if self.config.densify.enabled:
+            from polargs_plugin.densify.densifier import PolarDensifier
+
+            self._densifier = PolarDensifier(self.config, views, self.maps)
+            if self._pending_state is not None:
+                self._densifier.load_state_dict(self._pending_state)
+                self._pending_state = None
+        return [self.maps[name] for name in names]
+
+    def _load_or_compute(self, view: View) -> PolarMaps:
+        cache_dir = self.config.cache_dir
+        if cache_dir is None:
+            return compute_polar_maps(view.stokes, view.mask, self.config.correction)
+        path = _cache_file(Path(cache_dir), view, maps_cache_key(view, self.config))
+        if path.is_file():
+            try:
+                return _maps_from_dict(torch.load(path, map_location=view.stokes.device, weights_only=True))
+            except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError):
+                pass  # unreadable cache entry: recompute and overwrite it
+        maps = compute_polar_maps(view.stokes, view.mask, self.config.correction)
+        with atomic_path(path) as tmp:
+            torch.save({k: v.cpu() for k, v in _maps_to_dict(maps).items()}, tmp)
+        return maps
+
+    def _device_maps(self, view: View, device: torch.device) -> dict[str, Tensor]:
+        key = (view.name, str(device))
+        if key not in self._on_device:
+            if view.name not in self.maps:
+                raise KeyError(f"view '{view.name}' was not preprocessed: call hooks.preprocess(views) first")
+            maps = self.maps[view.name]
+            # Clamped like the trainers' targets, so the plain part cancels their colour loss.
+            cached = {"image": maps.intensity.clamp(0, 1).to(device)}
+            if maps.specular_mask is not None:
+                cached.update(
+                    specular=maps.specular_mask.to(device),
+                    overexposed=(maps.overexposed_mask & maps.extras["i_chro_valid"]).to(device),
+                    i_diff=maps.i_diff.to(device),
+                    i_chro=maps.i_chro.to(device),
+                )
+            self._on_device[key] = cached
+        return self._on_device[key]
+
+    # ----------------------------------------------------------------------------------- loss
+    def loss(
+        self, iteration: int, view: View, render: RenderOut, gaussians: GaussianState
+    ) -> tuple[Tensor, dict[str, float]]:
+        r"""The loss to ADD to the trainer's own loss, before backward.
+
+        Contract for PC (the reflective-aware colour loss). The trainer's colour loss is assumed
+        to be :func:`polargs_plugin.losses.photometric_loss` ``(render.color, view.image)``, i.e.
+        :math:`(1-\lambda)` mean L1 + :math:`\lambda` (1 - mean SSIM) over the whole image with
+        :math:`\lambda` = ``config.losses.ssim_weight`` (vanilla 3DGS's form). The returned loss
+        contains ``lambda_ref * L_ref - L_plain(reflective)``, where ``L_plain(reflective)`` is that
+        same colour loss summed over the reflective pixels only (all terms divided by H*W). So
+        trainer loss + extra = L_non + lambda_ref * L_ref exactly: the plain colour loss is
+        replaced on reflective pixels, untouched elsewhere. A trainer whose colour loss differs
+        (another SSIM), or whose target differs from ``view.image`` clamped to [0, 1] (e.g. a
+        background composited outside ``view.mask``), gets the replacement up to that difference
+        inside the SSIM windows of reflective pixels (the L1 part stays exact).
+
+        Other terms: ``alpha * L_n`` once the densifier holds a PatchMatch normal for this view;
+        ``beta * L_dn`` from ``config.losses.depth_normal_from_iter`` on; ``gamma * L_scale``.
+
+        Args:
+            iteration: the trainer's iteration (0-based).
+            view: the rendered view (preprocessed).
+            render: the render of ``view``.
+            gaussians: the current Gaussians (activated, autograd-connected).
+
+        Returns:
+            ``(extra, logs)``: scalar tensor on the render's device and a dict of floats (each
+            active term, unweighted).
+        """
+        cfg = self.config.losses
+        color = render.color
+        extra = color.new_zeros(())
+        logs: dict[str, float] = {}
+        if self.config.correction.enabled and cfg.use_ref:
+            maps = self._device_maps(view, color.device)
+            if "specular" in maps:
+                pc, l_s, l_o, plain = reflective_replacement(
+                    color, maps["image"], maps["specular"], maps["i_diff"], maps["overexposed"], maps["i_chro"],
+                    cfg.lambda_ref, cfg.ssim_weight,
+                )
+                extra = extra + pc
+                logs.update(l_s=float(l_s.detach()), l_o=float(l_o.detach()), l_plain_reflective=float(plain.detach()))
+        if cfg.use_normal:
+            target = self.normal_target(view.name)
+            if target is not None:
+                normal, valid = (t.to(color.device) for t in target)
+                l_n = normal_loss(render.normal, normal, valid)
+                extra = extra + cfg.alpha_normal * l_n
+                logs["l_n"] = float(l_n.detach())
+        if cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter:
+            l_dn = depth_normal_loss(render.depth, render.normal, render.alpha, view.K)
+            extra = extra + cfg.beta_depth_normal * l_dn
+            logs["l_dn"] = float(l_dn.detach())
+        if cfg.use_scale:
+            l_scale = scale_loss(gaussians.scales)
+            extra = extra + cfg.gamma_scale * l_scale
+            logs["l_scale"] = float(l_scale.detach())
+        return extra, logs
+
+    # -------------------------------------------------------------------------------- densify
+    def densify(
+        self,
+        iteration: int,
+        view: View,
+        render_fn: Callable[[View], RenderOut],
+        gaussians: GaussianState,
+    ) -> NewGaussians | None:
+        """Polar-enhanced densification (module Dense) after the optimizer step, under no_grad.
+
+        Args:
+            iteration: the trainer's iteration.
+            view: the current view.
+            render_fn: renders any view (reference and sources) with the current Gaussians.
+            gaussians: the current Gaussians.
+
+        Returns:
+            Gaussians to append, or ``None`` (off schedule, Dense disabled, nothing survived).
+        """
+        if self._densifier is None:
+            return None
+        with torch.no_grad():
+            return self._densifier(iteration, view, render_fn, gaussians)
+
+    def consistency_filter(
+        self, depths: Sequence[Tensor], normals: Sequence[Tensor] | None, views: Sequence[View], **kwargs: Any
+    ) -> Tensor:
+        """:func:`polargs_plugin.densify.filters.consistency_filter` with this config's filter
+        settings and, for preprocessed views, their AoLP / DoLP maps as defaults.
+
+        Usable on its own, e.g. to clean another MVS's depth and normal maps.
+
+        Args:
+            depths: per view :math:`(1, H, W)` camera-z depth.
+            normals: per view :math:`(3, H, W)` camera-frame normals (or ``None``).
+            views: the cameras of the same views.
+            **kwargs: passed on (``aolps``, ``dolps``, ``config``, ``reference``, ``sources``).
+
+        Returns:
+            The consistency mask(s), as the filter returns them.
+        """
+        from polargs_plugin.densify.filters import consistency_filter
+
+        kwargs.setdefault("config", self.config.densify.filters)
+        if all(view.name in self.maps for view in views):
+            kwargs.setdefault("aolps", [self.maps[view.name].aolp for view in views])
+            kwargs.setdefault("dolps", [self.maps[view.name].dolp for view in views])
+        return consistency_filter(depths, normals, views, **kwargs)
+
+    def normal_target(self, view_name: str) -> tuple[Tensor, Tensor] | None:
+        """The latest PatchMatch normal of a view, ``(normal (3, H, W), valid (1, H, W) bool)``,
+        or ``None`` before PatchMatch has run on it (or with Dense off)."""
+        if self._densifier is None:
+            return None
+        return self._densifier.normal_target(view_name)
+
+    # ---------------------------------------------------------------------------------- state
+    def state_dict(self) -> dict[str, Any]:
+        """What a checkpoint needs to resume (the densifier's state; maps are recomputed or cached)."""
+        if self._densifier is not None:
+            return {"densifier": self._densifier.state_dict()}
+        return {"densifier": self._pending_state}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`; before :meth:`preprocess` it is kept and applied there."""
+        densifier_state = state.get("densifier")
+        if densifier_state is None:
+            return
+        if self._densifier is not None:
+            self._densifier.load_state_dict(densifier_state)
+        else:
+            self._pending_state = densifier_state

@@ -1,0 +1,298 @@
+"""PolarGS losses: L = L_c + alpha L_n + beta L_dn + gamma L_scale, L_c = L_non + lambda_ref L_ref.
+
+Photometric terms are (1 - lambda) L1 + lambda (1 - SSIM) per pixel (vanilla 3DGS's colour loss,
+SSIM from kornia, 11x11 Gaussian window, 'same' padding), summed over the masked pixels and
+divided by the image's pixel count H*W. That normalisation makes masked terms add up: the plain
+colour loss over the whole image equals its part on the reflective pixels plus L_non, which is
+what lets :class:`~polargs_plugin.hooks.PolarHooks` swap the target on reflective pixels only.
+
+Every loss is finite with finite gradients on empty masks, zero opacity, zero intensity and zero
+vectors (no 0/0, no sqrt or normalisation at 0).
+"""
+
+from __future__ import annotations
+
+import kornia
+import torch
+from torch import Tensor
+
+__all__ = [
+    "photometric_loss_map",
+    "photometric_loss",
+    "reflective_loss",
+    "mask_box",
+    "reflective_replacement",
+    "normal_loss",
+    "depth_to_points",
+    "normal_from_depth",
+    "depth_normal_loss",
+    "scale_loss",
+    "safe_normalize",
+]
+
+_SSIM_WINDOW = 11
+
+
+def safe_normalize(vectors: Tensor, dim: int = -3, eps: float = 1e-12) -> Tensor:
+    """Unit vectors along ``dim``; zero vectors stay zero with a finite gradient.
+
+    Args:
+        vectors: :math:`(*, 3, H, W)` (any shape with ``dim`` the vector axis).
+        dim: vector axis.
+        eps: floor on the squared norm.
+
+    Returns:
+        Same shape, unit length where the squared norm exceeds ``eps``.
+    """
+    return vectors * torch.rsqrt((vectors * vectors).sum(dim=dim, keepdim=True).clamp_min(eps))
+
+
+def _loss_maps(pred: Tensor, targets: Tensor, ssim_weight: float) -> Tensor:
+    """(B, 1, H, W) per-pixel photometric loss of one (C, H, W) prediction against B targets."""
+    l1 = (pred[None] - targets).abs().mean(dim=1, keepdim=True)
+    if ssim_weight == 0:
+        return l1
+    # 'same' padding needs H, W > window // 2: shrink the window on tiny images.
+    window = min(_SSIM_WINDOW, 2 * min(pred.shape[-2:]) - 1)
+    # SSIM is per channel: the B targets go along channels of one image (kornia is much slower
+    # on a batch than on more channels).
+    count, channels = targets.shape[:2]
+    ssim = kornia.metrics.ssim(pred.repeat(count, 1, 1)[None], targets.reshape(1, -1, *targets.shape[-2:]), window)
+    ssim = ssim.reshape(count, channels, *targets.shape[-2:]).mean(dim=1, keepdim=True)
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
+
+
+def photometric_loss_map(pred: Tensor, target: Tensor, ssim_weight: float = 0.2) -> Tensor:
+    r"""Per-pixel :math:`(1-\lambda)\,\mathrm{mean}_c|P-T| + \lambda\,(1-\mathrm{mean}_c\,\mathrm{SSIM}(P,T))`.
+
+    Args:
+        pred: :math:`(C, H, W)` rendered colour.
+        target: :math:`(C, H, W)` target colour.
+        ssim_weight: :math:`\lambda` (0.2 in 3DGS).
+
+    Returns:
+        :math:`(1, H, W)` loss map; its mean is vanilla 3DGS's colour loss.
+    """
+    if pred.shape != target.shape:
+        raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
+    return _loss_maps(pred, target[None], ssim_weight)[0]
+
+
+def photometric_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None, ssim_weight: float = 0.2) -> Tensor:
+    """:func:`photometric_loss_map` summed over ``mask`` and divided by H*W (0 for an empty mask).
+
+    Args:
+        pred: :math:`(C, H, W)`.
+        target: :math:`(C, H, W)`.
+        mask: optional :math:`(1, H, W)` bool or float weights; ``None`` = every pixel (the
+            trainer's plain colour loss).
+        ssim_weight: SSIM share.
+
+    Returns:
+        Scalar.
+    """
+    loss = photometric_loss_map(pred, target, ssim_weight)
+    if mask is not None:
+        loss = loss * mask.to(loss.dtype)
+    return loss.sum() / loss[0].numel()
+
+
+def reflective_loss(
+    pred: Tensor,
+    image: Tensor,
+    specular_mask: Tensor,
+    i_diff: Tensor,
+    overexposed_mask: Tensor,
+    i_chro: Tensor,
+    ssim_weight: float = 0.2,
+) -> tuple[Tensor, Tensor]:
+    r"""The reflective-aware loss split into :math:`L_s(C, I_{diff})` and :math:`L_o(C, I_{chro})`.
+
+    One target image is assembled (the training colour, with I_diff on specular pixels and I_chro
+    on overexposed ones) so that SSIM windows straddling a highlight's border compare against the
+    real surroundings; each term sums the loss map over its own mask (divided by H*W).
+
+    Args:
+        pred: :math:`(C, H, W)` rendered colour.
+        image: :math:`(C, H, W)` training colour s0 / 2.
+        specular_mask: :math:`(1, H, W)` bool.
+        i_diff: :math:`(C, H, W)` target on specular pixels.
+        overexposed_mask: :math:`(1, H, W)` bool (only pixels with a valid I_chro).
+        i_chro: :math:`(C, H, W)` target on overexposed pixels.
+        ssim_weight: SSIM share.
+
+    Returns:
+        ``(L_s, L_o)`` scalars.
+    """
+    target = torch.where(specular_mask, i_diff, torch.where(overexposed_mask, i_chro, image))
+    loss = photometric_loss_map(pred, target, ssim_weight)
+    count = loss[0].numel()
+    return (loss * specular_mask).sum() / count, (loss * overexposed_mask).sum() / count
+
+
+def mask_box(mask: Tensor, margin: int) -> tuple[slice, slice] | None:
+    """Row and column slices of the bounding box of ``mask`` grown by ``margin`` (clipped to the
+    image), or ``None`` for an empty mask.
+
+    Args:
+        mask: :math:`(1, H, W)` bool.
+        margin: pixels added on every side.
+    """
+    rows = mask[0].any(dim=1).nonzero()
+    if rows.numel() == 0:
+        return None
+    cols = mask[0].any(dim=0).nonzero()
+    height, width = mask.shape[-2:]
+    top, bottom = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, height)
+    left, right = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, width)
+    return slice(top, bottom), slice(left, right)
+
+
+def reflective_replacement(
+    pred: Tensor,
+    image: Tensor,
+    specular_mask: Tensor,
+    i_diff: Tensor,
+    overexposed_mask: Tensor,
+    i_chro: Tensor,
+    lambda_ref: float = 1.0,
+    ssim_weight: float = 0.2,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    r"""What turns a plain whole-image colour loss into :math:`L_{non} + \lambda_{ref} L_{ref}`.
+
+    ``extra = lambda_ref * (L_s + L_o) - L_plain(reflective)``, with ``L_plain(reflective)`` =
+    ``photometric_loss(pred, image, reflective)``. Computed on the reflective pixels' bounding box
+    grown by the SSIM window radius, which gives the same values as the whole image (every
+    reflective pixel's window lies inside the box or meets the same image border), at the cost
+    of the highlights' area only; both SSIM maps come from one batched call.
+
+    Args:
+        pred: :math:`(C, H, W)` rendered colour.
+        image: :math:`(C, H, W)` training colour (the trainer's target).
+        specular_mask, overexposed_mask: :math:`(1, H, W)` bool.
+        i_diff, i_chro: :math:`(C, H, W)` targets on those masks.
+        lambda_ref: weight of L_ref.
+        ssim_weight: SSIM share.
+
+    Returns:
+        ``(extra, L_s, L_o, L_plain_reflective)`` scalars; all 0 (connected to ``pred``) when no
+        pixel is reflective.
+    """
+    count = pred[0].numel()
+    box = mask_box(specular_mask | overexposed_mask, _SSIM_WINDOW // 2)
+    if box is None:
+        zero = pred.sum() * 0
+        return zero, zero, zero, zero
+    rows, cols = box
+    pred, image, i_diff, i_chro = (x[:, rows, cols] for x in (pred, image, i_diff, i_chro))
+    specular, overexposed = specular_mask[:, rows, cols], overexposed_mask[:, rows, cols]
+    target = torch.where(specular, i_diff, torch.where(overexposed, i_chro, image))
+    corrected, plain = _loss_maps(pred, torch.stack([target, image]), ssim_weight)
+    l_s = (corrected * specular).sum() / count
+    l_o = (corrected * overexposed).sum() / count
+    l_plain = (plain * (specular | overexposed)).sum() / count
+    return lambda_ref * (l_s + l_o) - l_plain, l_s, l_o, l_plain
+
+
+def normal_loss(normal: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    r""":math:`L_n = \mathrm{mean}_{valid} \lVert \hat N - N_{opt} \rVert_1` with :math:`\hat N` the
+    rendered normal made unit length (the rendered one is alpha-weighted, not unit).
+
+    Args:
+        normal: :math:`(3, H, W)` rendered camera-frame normal.
+        target: :math:`(3, H, W)` unit PatchMatch normal.
+        valid: :math:`(1, H, W)` bool pixels with a target.
+
+    Returns:
+        Scalar, 0 where no pixel is valid.
+    """
+    weight = valid.to(normal.dtype)
+    per_pixel = (safe_normalize(normal, dim=0) - target).abs().sum(dim=0, keepdim=True)
+    return (per_pixel * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def depth_to_points(depth: Tensor, K: Tensor) -> Tensor:
+    """Camera-frame points of a camera-z depth map (pixel centres at +0.5).
+
+    Args:
+        depth: :math:`(1, H, W)` camera z.
+        K: :math:`(3, 3)` intrinsics.
+
+    Returns:
+        :math:`(3, H, W)` points :math:`z K^{-1} [u + 0.5, v + 0.5, 1]^T`.
+    """
+    height, width = depth.shape[-2:]
+    K = K.to(device=depth.device, dtype=torch.float64)
+    u = torch.arange(width, device=depth.device, dtype=torch.float64) + 0.5
+    v = torch.arange(height, device=depth.device, dtype=torch.float64) + 0.5
+    x = ((u[None, :] - K[0, 2] - K[0, 1] * (v[:, None] - K[1, 2]) / K[1, 1]) / K[0, 0]).to(depth.dtype)
+    y = ((v[:, None] - K[1, 2]) / K[1, 1]).expand(height, width).to(depth.dtype)
+    rays = torch.stack([x, y, torch.ones_like(x)])
+    return rays * depth
+
+
+def normal_from_depth(depth: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """Camera-frame normals from central differences of the back-projected depth, facing the camera.
+
+    Args:
+        depth: :math:`(1, H, W)` camera z (0 = nothing rendered).
+        K: :math:`(3, 3)` intrinsics.
+
+    Returns:
+        ``(normal, valid)``: :math:`(3, H, W)` unit normals (0 where invalid) and :math:`(1, H, W)`
+        bool, True where the pixel and its four neighbours have positive depth (never on the border).
+    """
+    points = depth_to_points(depth, K)
+    d_u = torch.zeros_like(points)
+    d_v = torch.zeros_like(points)
+    d_u[:, :, 1:-1] = points[:, :, 2:] - points[:, :, :-2]
+    d_v[:, 1:-1, :] = points[:, 2:, :] - points[:, :-2, :]
+    # dP/dv x dP/du points towards the camera (x right, y down, z forward). Dividing by z^2 and
+    # multiplying by fx fy makes its length O(1) whatever the scene scale, so the floor in
+    # safe_normalize only bites on degenerate pixels.
+    scale = (K[0, 0] * K[1, 1]).to(depth.dtype) / depth.square().clamp_min(1e-12)
+    normal = safe_normalize(torch.linalg.cross(d_v, d_u, dim=0) * scale, dim=0)
+    positive = depth > 0
+    valid = torch.zeros_like(positive)
+    valid[:, 1:-1, 1:-1] = (
+        positive[:, 1:-1, 1:-1]
+        & positive[:, 1:-1, 2:]
+        & positive[:, 1:-1, :-2]
+        & positive[:, 2:, 1:-1]
+        & positive[:, :-2, 1:-1]
+    )
+    return normal * valid, valid
+
+
+def depth_normal_loss(depth: Tensor, normal: Tensor, alpha: Tensor, K: Tensor) -> Tensor:
+    r"""Depth-normal consistency :math:`\sum w (1 - \hat N_d \cdot \hat N) / \sum w`, :math:`w = \alpha`.
+
+    The opacity weight is detached, so the term shapes geometry without pushing opacity down.
+
+    Args:
+        depth: :math:`(1, H, W)` rendered camera-z depth.
+        normal: :math:`(3, H, W)` rendered normal.
+        alpha: :math:`(1, H, W)` rendered opacity.
+        K: :math:`(3, 3)` intrinsics.
+
+    Returns:
+        Scalar in [0, 2], 0 where no pixel is valid or alpha is 0.
+    """
+    depth_normal, valid = normal_from_depth(depth, K)
+    weight = alpha.detach() * valid
+    cosine = (depth_normal * safe_normalize(normal, dim=0)).sum(dim=0, keepdim=True)
+    return (weight * (1 - cosine)).sum() / weight.sum().clamp_min(1e-8)
+
+
+def scale_loss(scales: Tensor) -> Tensor:
+    r"""Flattening :math:`L_{scale} = \mathrm{mean}_i \min(s_{i,1}, s_{i,2}, s_{i,3})`.
+
+    Args:
+        scales: :math:`(N, 3)` positive scales.
+
+    Returns:
+        Scalar, 0 for N = 0.
+    """
+    if scales.shape[0] == 0:
+        return scales.sum()
+    return scales.amin(dim=-1).mean()

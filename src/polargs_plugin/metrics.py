@@ -1,0 +1,252 @@
+"""Geometry metrics: DTU-style Chamfer distance with F-score, and normal mean angular error.
+
+Chamfer protocol (docs/evaluation.md): both meshes are sampled area-uniformly (seeded); the
+predicted points are optionally culled to the dilated object masks; nearest neighbours come from
+scipy's cKDTree. accuracy = mean distance pred -> GT, completeness = mean distance GT -> pred,
+chamfer = their mean. As in the DTU script, distances above ``max_dist`` are dropped from the
+means (not clipped). F-score at ``fscore_threshold`` uses all points. Distances are in the
+meshes' own units; bring the prediction into the ground truth's frame and scale first.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+import open3d as o3d
+import torch
+import torch.nn.functional as F
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from polargs_plugin.types import View
+
+__all__ = [
+    "MAX_DIST_FRACTION",
+    "FSCORE_FRACTION",
+    "sample_surface",
+    "cull_to_masks",
+    "chamfer_distance",
+    "normal_angle_errors",
+    "normal_mae",
+]
+
+# Defaults relative to the ground-truth bounding-box diagonal, so that they mean the same on
+# any scale: DTU drops distances >= 20 mm on objects whose box diagonal is ~400-500 mm (~5 %);
+# the F-score threshold is a tenth of that (2-2.5 mm on DTU; ~0.017 on a unit-radius sphere).
+MAX_DIST_FRACTION = 0.05
+FSCORE_FRACTION = 0.005
+
+MeshLike = o3d.geometry.TriangleMesh | tuple[np.ndarray, np.ndarray]
+
+
+def _mesh_arrays(mesh: MeshLike) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(mesh, o3d.geometry.TriangleMesh):
+        vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    else:
+        vertices, triangles = mesh
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise ValueError(f"mesh must be vertices (V, 3) and triangles (F, 3), got {vertices.shape}, {triangles.shape}")
+    if len(triangles) == 0:
+        raise ValueError("mesh has no triangles")
+    return vertices, triangles
+
+
+def sample_surface(mesh: MeshLike, num: int, seed: int = 0) -> np.ndarray:
+    """Sample ``num`` points uniformly by area on a triangle mesh.
+
+    Args:
+        mesh: open3d TriangleMesh or (vertices (V, 3), triangles (F, 3)).
+        num: number of points.
+        seed: random seed (the result depends only on the mesh, ``num`` and ``seed``).
+
+    Returns:
+        (num, 3) float64 points.
+    """
+    vertices, triangles = _mesh_arrays(mesh)
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    total = areas.sum()
+    if not total > 0:
+        raise ValueError("mesh has zero surface area")
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(triangles), size=int(num), p=areas / total)
+    # Uniform barycentrics: fold the unit square onto the triangle (r1 + r2 <= 1).
+    r1, r2 = rng.random(int(num)), rng.random(int(num))
+    flip = r1 + r2 > 1
+    r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+    return a[face] + r1[:, None] * (b[face] - a[face]) + r2[:, None] * (c[face] - a[face])
+
+
+def cull_to_masks(points: np.ndarray, views: Sequence[View], dilation_px: int = 2) -> np.ndarray:
+    """Which points survive DTU-style mask culling.
+
+    A point is kept if, in every view, it is either outside the image (or behind the camera)
+    or inside the object mask dilated by a disk of radius ``dilation_px`` pixels.
+
+    Args:
+        points: (N, 3) world points.
+        views: views with ``mask`` (1, H, W) bool, ``K`` (pixel centres at +0.5), ``world_to_camera``.
+        dilation_px: dilation radius (DTU: 24 px at 1600x1200; NeuS: 50 px).
+
+    Returns:
+        (N,) bool keep mask.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    keep = np.ones(len(points), dtype=bool)
+    for view in views:
+        if view.mask is None:
+            raise ValueError(f"cull_to_masks: view {view.name!r} has no mask")
+        mask = view.mask[0].detach().cpu().numpy().astype(np.uint8)
+        if dilation_px > 0:
+            disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilation_px + 1, 2 * dilation_px + 1))
+            mask = cv2.dilate(mask, disk)
+        height, width = mask.shape
+        w2c = view.world_to_camera.detach().cpu().numpy().astype(np.float64)
+        K = view.K.detach().cpu().numpy().astype(np.float64)
+        cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = cam[:, 2]
+        front = z > 1e-9
+        zs = np.where(front, z, 1.0)
+        u = np.floor(K[0, 0] * cam[:, 0] / zs + K[0, 1] * cam[:, 1] / zs + K[0, 2])
+        v = np.floor(K[1, 1] * cam[:, 1] / zs + K[1, 2])
+        inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        ui = np.clip(u, 0, width - 1).astype(np.int64)
+        vi = np.clip(v, 0, height - 1).astype(np.int64)
+        keep &= ~inside | (mask[vi, ui] > 0)
+    return keep
+
+
+def _nn_distances(query: np.ndarray, target: np.ndarray) -> np.ndarray:
+    return cKDTree(target).query(query, k=1, workers=-1)[0]
+
+
+def chamfer_distance(
+    pred: MeshLike,
+    gt: MeshLike,
+    num_samples: int = 1_000_000,
+    seed: int = 0,
+    max_dist: float | None = None,
+    fscore_threshold: float | None = None,
+    cull_views: Sequence[View] | None = None,
+    cull_dilation_px: int = 2,
+    units: str = "scene units",
+) -> dict[str, float | int | str]:
+    """DTU-style Chamfer distance and F-score between a predicted and a ground-truth mesh.
+
+    Args:
+        pred, gt: open3d TriangleMesh or (vertices (V, 3), triangles (F, 3)), same frame and units.
+        num_samples: area-uniform samples per mesh (before culling).
+        seed: sampling seed (GT uses ``seed``, prediction ``seed + 1``).
+        max_dist: distances above this are dropped from accuracy/completeness (DTU: 20 mm).
+            None = ``MAX_DIST_FRACTION`` x GT bounding-box diagonal.
+        fscore_threshold: distance under which a point counts as matched.
+            None = ``FSCORE_FRACTION`` x GT bounding-box diagonal.
+        cull_views: if given, predicted points outside these views' dilated masks are dropped
+            first (:func:`cull_to_masks`).
+        cull_dilation_px: mask dilation radius for culling, in pixels.
+        units: label of the distance unit, copied to the output.
+
+    Returns:
+        dict with accuracy, completeness, chamfer (means of kept distances; NaN if all were
+        dropped), precision, recall, fscore, the fractions of dropped distances
+        (accuracy_outliers, completeness_outliers), max_dist, fscore_threshold, units,
+        num_pred_points (after culling), num_gt_points, seed.
+    """
+    gt_vertices, _ = _mesh_arrays(gt)
+    diagonal = float(np.linalg.norm(gt_vertices.max(0) - gt_vertices.min(0)))
+    max_dist = MAX_DIST_FRACTION * diagonal if max_dist is None else float(max_dist)
+    fscore_threshold = FSCORE_FRACTION * diagonal if fscore_threshold is None else float(fscore_threshold)
+    if not (max_dist > 0 and fscore_threshold > 0):
+        raise ValueError(f"max_dist and fscore_threshold must be positive, got {max_dist}, {fscore_threshold}")
+
+    gt_points = sample_surface(gt, num_samples, seed)
+    pred_points = sample_surface(pred, num_samples, seed + 1)
+    if cull_views is not None:
+        pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px)]
+        if len(pred_points) == 0:
+            raise ValueError("chamfer_distance: every predicted point lies outside the masks")
+
+    to_gt = _nn_distances(pred_points, gt_points)
+    to_pred = _nn_distances(gt_points, pred_points)
+
+    def kept_mean(d: np.ndarray) -> float:
+        kept = d[d <= max_dist]
+        return float(kept.mean()) if len(kept) else math.nan
+
+    accuracy, completeness = kept_mean(to_gt), kept_mean(to_pred)
+    precision = float((to_gt < fscore_threshold).mean())
+    recall = float((to_pred < fscore_threshold).mean())
+    fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return {
+        "accuracy": accuracy,
+        "completeness": completeness,
+        "chamfer": (accuracy + completeness) / 2,
+        "precision": precision,
+        "recall": recall,
+        "fscore": fscore,
+        "accuracy_outliers": float((to_gt > max_dist).mean()),
+        "completeness_outliers": float((to_pred > max_dist).mean()),
+        "max_dist": max_dist,
+        "fscore_threshold": fscore_threshold,
+        "units": units,
+        "num_pred_points": int(len(pred_points)),
+        "num_gt_points": int(len(gt_points)),
+        "seed": int(seed),
+    }
+
+
+def normal_angle_errors(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
+    """Angles between predicted and ground-truth normals at the masked pixels.
+
+    Both normal maps are renormalised; a zero-length normal (no geometry rendered) has dot
+    product 0 with anything and so counts as 90 degrees.
+
+    Args:
+        pred: (3, H, W) normals (any length), same frame as ``gt``.
+        gt: (3, H, W) normals.
+        mask: (1, H, W) bool pixels to evaluate.
+
+    Returns:
+        (M,) float64 angles in degrees, M = number of masked pixels.
+    """
+    if pred.shape != gt.shape or pred.ndim != 3 or pred.shape[0] != 3:
+        raise ValueError(f"normal maps must both be (3, H, W), got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    if mask.shape != (1, *pred.shape[1:]):
+        raise ValueError(f"mask must be (1, H, W) = {(1, *pred.shape[1:])}, got {tuple(mask.shape)}")
+    sel = mask[0].to(torch.bool)
+    p = F.normalize(pred.detach().to(torch.float64)[:, sel], dim=0)
+    g = F.normalize(gt.detach().to(torch.float64)[:, sel], dim=0)
+    return torch.rad2deg(torch.arccos((p * g).sum(0).clamp(-1.0, 1.0)))
+
+
+def normal_mae(
+    pred: Sequence[Tensor] | Tensor,
+    gt: Sequence[Tensor] | Tensor,
+    masks: Sequence[Tensor] | Tensor,
+) -> float:
+    """Normal mean angular error in degrees: averaged per view, then over views (NeISF protocol).
+
+    Args:
+        pred: V predicted normal maps (3, H, W) (a list or a (V, 3, H, W) tensor).
+        gt: V ground-truth normal maps (3, H, W), same frame as ``pred``.
+        masks: V bool masks (1, H, W).
+
+    Returns:
+        mean angular error in degrees.
+
+    Raises:
+        ValueError: if the counts differ, nothing is given, or a mask is empty.
+    """
+    if not (len(pred) == len(gt) == len(masks)) or len(pred) == 0:
+        raise ValueError(f"normal_mae needs matching non-empty lists, got {len(pred)}, {len(gt)}, {len(masks)}")
+    per_view = []
+    for i, (p, g, m) in enumerate(zip(pred, gt, masks)):
+        if not bool(m.any()):
+            raise ValueError(f"normal_mae: mask of view {i} is empty; nothing to evaluate")
+        per_view.append(float(normal_angle_errors(p, g, m).mean()))
+    return float(np.mean(per_view))

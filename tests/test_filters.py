@@ -1,0 +1,71 @@
+"""Consistency filters against ground-truth geometry of an analytic sphere."""
+
+import math
+
+import torch
+
+from polargs_plugin.config import FilterConfig
+from polargs_plugin.densify.filters import consistency_filter, reprojection_check
+from polargs_plugin.optics.azimuth import aolp_from_normals, zenith_from_normals
+from polargs_plugin.optics.fresnel import dolp_diffuse
+from test_patchmatch_scenes import make_scene
+
+
+def _scene():
+    views, renders = make_scene("sphere", size=48, num_sources=4, textured=False, distance=3.5, focal_ratio=1.6)
+    depths = [r[1] for r in renders]
+    normals = [r[2] for r in renders]
+    aolps = [aolp_from_normals(n) for n in normals]
+    dolps = [dolp_diffuse(zenith_from_normals(n)) * r[3] for n, r in zip(normals, renders)]
+    return views, renders, depths, normals, aolps, dolps
+
+
+def test_true_depths_reproject_within_a_pixel():
+    views, renders, depths, *_ = _scene()
+    reproj, rel, valid, _ = reprojection_check(depths[0], views[0].K, views[0].world_to_camera,
+                                               depths[1], views[1].K, views[1].world_to_camera)
+    assert valid.float().sum() > 0.5 * renders[0][3].float().sum()
+    assert (reproj[valid] < 1.0).float().mean() > 0.95
+    assert (rel[valid] < 0.01).float().mean() > 0.95
+
+
+def test_ground_truth_passes_and_wrong_depth_is_rejected():
+    views, renders, depths, normals, aolps, dolps = _scene()
+    mask = renders[0][3]
+    keep = consistency_filter(depths, normals, views, aolps=aolps, dolps=dolps, reference=0)
+    assert keep.shape == mask.shape and not keep[~mask].any()
+    assert keep[mask].float().mean() > 0.8
+    bad = [d.clone() for d in depths]
+    bad[0][:, 10:30, 10:30] *= 1.05
+    keep_bad = consistency_filter(bad, normals, views, aolps=aolps, dolps=dolps, reference=0)
+    region = mask[:, 10:30, 10:30]
+    assert keep_bad[:, 10:30, 10:30][region].float().mean() < 0.05
+    # stacking all views gives the same answer for the reference
+    assert torch.equal(consistency_filter(depths, normals, views, aolps=aolps, dolps=dolps)[0], keep)
+
+
+def test_polarimetric_residual_rejects_normals_with_wrong_azimuth():
+    views, renders, depths, normals, aolps, dolps = _scene()
+    n = normals[0]
+    rot = math.radians(30.0)  # rotate every normal about the optical axis: azimuth + 30 deg
+    c, s = math.cos(rot), math.sin(rot)
+    turned = torch.stack([c * n[0] + s * n[1], -s * n[0] + c * n[1], n[2]])
+    wrong = [turned] + normals[1:]
+    cfg = FilterConfig()
+    keep_ok = consistency_filter(depths, normals, views, aolps=aolps, dolps=dolps, reference=0, config=cfg)
+    keep_wrong = consistency_filter(depths, wrong, views, aolps=aolps, dolps=dolps, reference=0, config=cfg)
+    polarized = (dolps[0] > cfg.polar_dolp_reference) & keep_ok
+    assert polarized.sum() > 20
+    assert keep_wrong[polarized].float().mean() < 0.1
+    cfg.use_polar = False
+    keep_geo = consistency_filter(depths, wrong, views, aolps=aolps, dolps=dolps, reference=0, config=cfg)
+    assert torch.equal(keep_geo & keep_ok, keep_ok)
+
+
+def test_min_consistent_views_counts_sources():
+    views, renders, depths, normals, *_ = _scene()
+    cfg = FilterConfig(min_consistent_views=1)
+    one = consistency_filter(depths[:2], None, views[:2], config=cfg, reference=0)
+    cfg.min_consistent_views = 2
+    two = consistency_filter(depths[:2], None, views[:2], config=cfg, reference=0)
+    assert one.any() and not two.any()

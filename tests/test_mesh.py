@@ -1,0 +1,221 @@
+"""TSDF fusion checked against analytic geometry: exact ray-sphere depth maps -> sphere mesh."""
+
+import itertools
+import math
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+from polargs_plugin.io import PolarInputError
+from polargs_plugin.mesh import (
+    MESH_PRESETS,
+    keep_largest_cluster,
+    mesh_settings,
+    read_mesh,
+    tsdf_fuse,
+    write_mesh,
+)
+from polargs_plugin.metrics import chamfer_distance
+from polargs_plugin.types import RenderOut, View
+
+RADIUS = 1.0
+SIZE = 80
+FOCAL = 70.0
+
+
+def look_at(eye: np.ndarray) -> np.ndarray:
+    """OpenCV world_to_camera (4, 4) for a camera at ``eye`` looking at the origin."""
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.stack([x, y, z])
+    w2c[:3, 3] = -w2c[:3, :3] @ eye
+    return w2c
+
+
+def sphere_depth(K: np.ndarray, w2c: np.ndarray, radius: float, background: float = 0.0):
+    """Exact camera-z depth of a sphere at the origin at each pixel centre (u+0.5, v+0.5)."""
+    u, v = np.meshgrid(np.arange(SIZE) + 0.5, np.arange(SIZE) + 0.5)
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    centre = -R.T @ t
+    d = d_cam @ R  # world directions (R^T d), z-component of d_cam is 1 so the ray parameter is z
+    b = d @ centre
+    a = (d * d).sum(-1)
+    disc = b * b - a * (centre @ centre - radius**2)
+    hit = disc > 0
+    s = (-b - np.sqrt(np.where(hit, disc, 0.0))) / a
+    depth = np.where(hit, s, background)
+    return torch.from_numpy(depth[None]).float(), torch.from_numpy(hit[None])
+
+
+def sphere_inputs(background: float = 0.0):
+    K = np.array([[FOCAL, 0, SIZE / 2], [0, FOCAL, SIZE / 2], [0, 0, 1.0]])
+    # Cameras at distance 3 along the 8 cube-corner directions cover the whole sphere.
+    eyes = [3.0 * np.array(s) / np.sqrt(3) for s in itertools.product((-1.0, 1.0), repeat=3)]
+    depths, masks, w2cs = [], [], []
+    for eye in eyes:
+        w2c = look_at(eye)
+        depth, mask = sphere_depth(K, w2c, RADIUS, background)
+        depths.append(depth)
+        masks.append(mask)
+        w2cs.append(torch.from_numpy(w2c))
+    colour = torch.tensor([0.2, 0.6, 0.8]).view(3, 1, 1).expand(3, SIZE, SIZE)
+    return depths, [colour] * len(eyes), [torch.from_numpy(K)] * len(eyes), w2cs, masks
+
+
+def test_tsdf_sphere_within_one_and_a_half_voxels():
+    voxel = 0.02
+    # A background wall at depth 4 in every view: the masks must remove it.
+    depths, colours, Ks, w2cs, masks = sphere_inputs(background=4.0)
+    mesh = tsdf_fuse(depths, colours, Ks, w2cs, masks=masks, voxel_size=voxel, sdf_trunc=4 * voxel, depth_trunc=6.0)
+    truth = o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=80)
+    cd = chamfer_distance(mesh, truth, num_samples=60_000, seed=1)
+    assert cd["chamfer"] < 1.5 * voxel
+    assert cd["accuracy_outliers"] == 0.0 and cd["completeness_outliers"] == 0.0
+    radii = np.linalg.norm(np.asarray(mesh.vertices), axis=1)
+    assert np.abs(radii - RADIUS).max() < 2 * voxel
+    colours = np.asarray(mesh.vertex_colors)
+    np.testing.assert_allclose(colours.mean(0), [0.2, 0.6, 0.8], atol=2 / 255)
+
+
+def test_tsdf_alpha_threshold_and_depth_trunc_remove_pixels():
+    depths, colours, Ks, w2cs, masks = sphere_inputs()
+    voxel = 0.05
+    kw = dict(voxel_size=voxel, sdf_trunc=4 * voxel)
+    # Depth truncation below the nearest surface point (distance 3 - 1 = 2) leaves nothing.
+    assert len(tsdf_fuse(depths, colours, Ks, w2cs, depth_trunc=1.9, **kw).triangles) == 0
+    alphas = [torch.zeros_like(d) for d in depths]
+    empty = tsdf_fuse(depths, colours, Ks, w2cs, alphas=alphas, alpha_threshold=0.5, depth_trunc=6.0, **kw)
+    assert len(empty.triangles) == 0
+    full = tsdf_fuse(depths, colours, Ks, w2cs, alphas=[a + 1 for a in alphas], alpha_threshold=0.5, depth_trunc=6.0, **kw)
+    assert len(full.triangles) > 0
+
+
+def tilted_plane_depth(slope: float, K: np.ndarray, z0: float = 2.0) -> torch.Tensor:
+    """Camera-z depth of the plane z = z0 + slope * x at the pixel centres (u + 0.5, v + 0.5)."""
+    u = np.arange(SIZE) + 0.5
+    x_over_z = (u - K[0, 2]) / K[0, 0]
+    depth = np.broadcast_to(z0 / (1 - slope * x_over_z), (SIZE, SIZE))
+    return torch.from_numpy(depth[None].copy()).float()
+
+
+def test_tsdf_uses_half_pixel_centres():
+    # A plane tilted about the y axis: depth changes by ~0.02 per pixel column, so reading the
+    # pixel half a column off would bias the fused surface by ~0.008 along its normal.
+    slope, z0, voxel = 0.5, 2.0, 0.02
+    K = np.array([[FOCAL, 0, SIZE / 2], [0, FOCAL, SIZE / 2], [0, 0, 1.0]])
+    depth = tilted_plane_depth(slope, K, z0)
+    colour = torch.full((3, SIZE, SIZE), 0.5)
+    mesh = tsdf_fuse([depth], [colour], [torch.from_numpy(K)], [torch.eye(4, dtype=torch.float64)],
+                     voxel_size=voxel, sdf_trunc=4 * voxel, depth_trunc=5.0)
+    p = np.asarray(mesh.vertices)
+    assert len(p) > 1000
+    signed = (p[:, 2] - z0 - slope * p[:, 0]) / np.hypot(1.0, slope)
+    assert abs(signed.mean()) < 0.002
+    assert np.abs(signed).max() < voxel
+
+
+def test_keep_largest_cluster_drops_floater():
+    big = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=10)
+    small = o3d.geometry.TriangleMesh.create_sphere(radius=0.1, resolution=10).translate((3.0, 0, 0))
+    mesh = keep_largest_cluster(big + small)
+    assert len(mesh.triangles) == len(big.triangles)
+    assert np.asarray(mesh.vertices)[:, 0].max() <= 1.0 + 1e-9
+    # Counts are triangles, not area: the small sphere has as many as the big one and is kept at
+    # fraction 0.5, a 24-triangle sphere (7 % of 360) is not.
+    both = keep_largest_cluster(big + small, min_fraction=0.5)
+    assert len(both.triangles) == len(big.triangles) + len(small.triangles)
+    tiny = o3d.geometry.TriangleMesh.create_sphere(radius=0.1, resolution=3).translate((3.0, 0, 0))
+    assert len(keep_largest_cluster(big + tiny, min_fraction=0.5).triangles) == len(big.triangles)
+
+
+def test_mesh_settings_presets_and_overrides():
+    assert MESH_PRESETS["paper"] == {"voxel_size": 0.008, "sdf_trunc": 0.04, "depth_trunc": 10.0}
+    s = mesh_settings("paper", voxel_size=0.004)
+    assert s["sdf_trunc"] == pytest.approx(0.02)  # keeps the paper's 5-voxel truncation
+    assert mesh_settings("synthetic", sdf_trunc=0.1)["sdf_trunc"] == 0.1
+    with pytest.raises(ValueError, match="unknown mesh preset"):
+        mesh_settings("nope")
+    with pytest.raises(ValueError, match="voxel_size"):
+        mesh_settings("paper", voxel_size=-1)
+
+
+def test_tsdf_rejects_mismatched_inputs():
+    depths, colours, Ks, w2cs, masks = sphere_inputs()
+    with pytest.raises(ValueError, match="colors"):
+        tsdf_fuse(depths, colours[:3], Ks, w2cs)
+    with pytest.raises(ValueError, match=r"colour 0 must be \(3"):
+        tsdf_fuse(depths, [c[:, :10] for c in colours], Ks, w2cs)
+
+
+def test_write_and_read_mesh_atomic(tmp_path):
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=8)
+    path = write_mesh(tmp_path / "sub" / "mesh.ply", mesh)
+    back = read_mesh(path)
+    np.testing.assert_allclose(np.asarray(back.vertices), np.asarray(mesh.vertices), atol=1e-6)
+    with pytest.raises(PolarInputError):
+        write_mesh(tmp_path / "mesh.unknownformat", mesh)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sub"]  # nothing half-written
+    with pytest.raises(PolarInputError, match="not found"):
+        read_mesh(tmp_path / "missing.ply")
+    (tmp_path / "junk.ply").write_text("not a mesh")
+    with pytest.raises(PolarInputError, match="no triangles"):
+        read_mesh(tmp_path / "junk.ply")
+
+
+class AnalyticSphereModel:
+    """Stands in for a trained model: renders the exact unit sphere (depth, normal, alpha)."""
+
+    def render(self, view: View) -> RenderOut:
+        K, w2c = view.K.numpy(), view.world_to_camera.numpy()
+        depth, hit = sphere_depth(K, w2c, RADIUS)
+        u, v = np.meshgrid(np.arange(SIZE) + 0.5, np.arange(SIZE) + 0.5)
+        points = depth[0].numpy()[..., None] * np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+        normal = (points - w2c[:3, 3]) / RADIUS * hit[0].numpy()[..., None]  # sphere centre is at t
+        colour = torch.full((3, SIZE, SIZE), 0.5)
+        alpha = hit.float()
+        normal = torch.from_numpy(normal.transpose(2, 0, 1)).float()
+        return RenderOut(color=colour, depth=depth, normal=normal, alpha=alpha, median_depth=depth)
+
+
+def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
+    import json
+
+    import polargs_plugin.cli.mesh as cli_mesh
+    from polargs_plugin.cli import main
+
+    depths, _, Ks, w2cs, masks = sphere_inputs()
+    model = AnalyticSphereModel()
+    views = []
+    for i, (K, w2c, mask) in enumerate(zip(Ks, w2cs, masks)):
+        view = View(name=f"v{i}", K=K, world_to_camera=w2c, stokes=torch.zeros(3, 3, SIZE, SIZE), mask=mask)
+        # GT normals = rendered normals turned by exactly 0.3 rad towards a perpendicular m.
+        n = model.render(view).normal.double()
+        m = torch.nn.functional.normalize(torch.cross(n, torch.tensor([1.0, 0, 0]).double().view(3, 1, 1).expand_as(n), dim=0), dim=0)
+        view.normal_gt = (math.cos(0.3) * n + math.sin(0.3) * m).float()
+        views.append(view)
+    monkeypatch.setattr(cli_mesh, "load_run", lambda run_dir: (model, views))
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    gt_path = write_mesh(tmp_path / "gt.ply", o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=80))
+
+    assert main(["mesh", str(run_dir), "--voxel", "0.02", "--alpha-threshold", "0.5"]) == 0
+    info = json.loads((run_dir / "tsdf_mesh.json").read_text())
+    assert info["voxel_size"] == 0.02 and info["sdf_trunc"] == pytest.approx(0.08) and info["views"] == 8
+
+    assert main(["eval", str(run_dir), "--gt", str(gt_path), "--normals", "--cull", "--num-samples", "60000"]) == 0
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["chamfer"]["chamfer"] < 1.5 * 0.02 and metrics["chamfer"]["culled"] is True
+    assert metrics["normal_mae_deg"] == pytest.approx(math.degrees(0.3), abs=1e-3)
+    printed = capsys.readouterr().out
+    assert "Chamfer (mean)" in printed and "normal MAE" in printed
+
+    with pytest.raises(PolarInputError, match="neither a run folder nor a mesh file"):
+        main(["eval", str(tmp_path / "missing"), "--gt", str(gt_path)])
+    with pytest.raises(SystemExit, match="need a run folder"):
+        main(["eval", str(gt_path), "--gt", str(gt_path), "--normals"])

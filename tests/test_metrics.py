@@ -1,0 +1,206 @@
+"""Chamfer distance, F-score, mask culling and normal MAE against analytic geometry."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+from polargs_plugin.metrics import (
+    chamfer_distance,
+    cull_to_masks,
+    normal_angle_errors,
+    normal_mae,
+    sample_surface,
+)
+from polargs_plugin.types import View
+
+N = 100_000
+
+
+def sphere(radius: float, centre=(0.0, 0.0, 0.0)) -> o3d.geometry.TriangleMesh:
+    return o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=100).translate(centre)
+
+
+def square(z: float) -> tuple[np.ndarray, np.ndarray]:
+    vertices = np.array([[0, 0, z], [1, 0, z], [1, 1, z], [0, 1, z]], dtype=np.float64)
+    return vertices, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def nn_spacing(area: float, num: int) -> float:
+    """Mean nearest-neighbour distance of a uniform 2D Poisson sample, 1 / (2 sqrt(density))."""
+    return 0.5 / math.sqrt(num / area)
+
+
+def test_sample_surface_is_area_uniform_and_seeded():
+    # Two unit squares, one scaled x3 in area: it must receive ~3/4 of the samples.
+    big = np.array([[0, 0, 0], [math.sqrt(3), 0, 0], [math.sqrt(3), math.sqrt(3), 0], [0, math.sqrt(3), 0]])
+    small = np.array([[0, 0, 5], [1, 0, 5], [1, 1, 5], [0, 1, 5]])
+    vertices = np.vstack([big, small]).astype(np.float64)
+    triangles = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    points = sample_surface((vertices, triangles), 40_000, seed=3)
+    assert abs((points[:, 2] == 0).mean() - 0.75) < 0.01
+    # Uniform inside a square: mean x on the small one is 1/2, variance 1/12.
+    xs = points[points[:, 2] == 5, 0]
+    assert abs(xs.mean() - 0.5) < 0.01 and abs(xs.var() - 1 / 12) < 0.003
+    np.testing.assert_array_equal(points, sample_surface((vertices, triangles), 40_000, seed=3))
+
+
+def test_sphere_vs_larger_sphere_gives_radius_difference():
+    cd = chamfer_distance(sphere(1.0), sphere(1.05), num_samples=N, seed=0)
+    assert cd["accuracy"] == pytest.approx(0.05, abs=2e-3)
+    assert cd["completeness"] == pytest.approx(0.05, abs=2e-3)
+    assert cd["chamfer"] == pytest.approx(0.05, abs=2e-3)
+    assert cd["accuracy_outliers"] == 0 and cd["completeness_outliers"] == 0
+
+
+def test_identical_meshes_give_sampling_noise_only():
+    cd = chamfer_distance(sphere(1.0), sphere(1.0), num_samples=N, seed=0)
+    assert 0 <= cd["chamfer"] < 1.5 * nn_spacing(4 * math.pi, N)
+    assert cd["fscore"] > 0.99
+
+
+def test_plane_offset_along_normal():
+    cd = chamfer_distance(square(0.03), square(0.0), num_samples=N, max_dist=1.0, fscore_threshold=0.01)
+    assert cd["accuracy"] == pytest.approx(0.03, abs=1e-3)
+    assert cd["completeness"] == pytest.approx(0.03, abs=1e-3)
+    assert cd["precision"] == 0.0 and cd["recall"] == 0.0 and cd["fscore"] == 0.0
+    loose = chamfer_distance(square(0.03), square(0.0), num_samples=N, max_dist=1.0, fscore_threshold=0.05)
+    assert loose["fscore"] == 1.0
+
+
+def test_outliers_above_max_dist_are_dropped():
+    # A far floater (1 % of the predicted area) adds nothing to accuracy once dropped.
+    pred = sphere(1.0) + sphere(0.1, centre=(5.0, 0.0, 0.0))
+    cd = chamfer_distance(pred, sphere(1.0), num_samples=N, max_dist=0.5)
+    assert cd["accuracy"] < 1.5 * nn_spacing(4 * math.pi, N)
+    assert cd["accuracy_outliers"] == pytest.approx(0.01 / 1.01, abs=2e-3)
+    assert cd["max_dist"] == 0.5 and cd["units"] == "scene units"
+    everything = chamfer_distance(sphere(1.0), sphere(1.5), num_samples=1000, max_dist=0.1)
+    assert math.isnan(everything["chamfer"]) and everything["accuracy_outliers"] == 1.0
+
+
+def test_default_thresholds_scale_with_gt_diagonal():
+    cd = chamfer_distance(sphere(2.0), sphere(2.0), num_samples=1000)
+    diagonal = 4.0 * math.sqrt(3)  # bounding box of the (vertex-exact) sphere
+    assert cd["max_dist"] == pytest.approx(0.05 * diagonal, rel=1e-6)
+    assert cd["fscore_threshold"] == pytest.approx(0.005 * diagonal, rel=1e-6)
+
+
+def look_at(eye: np.ndarray) -> torch.Tensor:
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.stack([x, np.cross(z, x), z])
+    w2c[:3, 3] = -w2c[:3, :3] @ eye
+    return torch.from_numpy(w2c)
+
+
+def silhouette_view(eye: np.ndarray, size: int = 64, focal: float = 40.0) -> View:
+    """A view whose mask is the exact silhouette of the unit sphere (pixel-centre rays)."""
+    w2c = look_at(eye)
+    K = torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]], dtype=torch.float64)
+    u, v = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+    rays = np.stack([(u - size / 2) / focal, (v - size / 2) / focal, np.ones_like(u)], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    to_centre = w2c[:3, 3].numpy() / np.linalg.norm(eye)  # camera-frame direction of the origin
+    inside = rays @ to_centre > math.sqrt(1 - 1 / np.dot(eye, eye))  # angle < asin(r / D)
+    return View(name=str(eye), K=K, world_to_camera=w2c, stokes=torch.zeros(3, 1, size, size),
+                mask=torch.from_numpy(inside[None]))
+
+
+def test_cull_to_masks_keeps_object_drops_floater():
+    # The floaters project into every image (half field of view 38.7 deg) but outside the
+    # sphere's silhouette (18.4 deg), at 26-34 deg from the optical axis.
+    views = [silhouette_view(np.array(e, dtype=np.float64)) for e in ([3, 0, 1], [0, 3, 1], [-3, -1, 0.5])]
+    on_sphere = sample_surface(sphere(1.0), 5000, seed=1)
+    assert cull_to_masks(on_sphere, views, dilation_px=1).all()
+    floater = sample_surface(sphere(0.05, centre=(0.0, 0.0, 1.4)), 500, seed=2)
+    assert not cull_to_masks(floater, views, dilation_px=1).any()
+    blind = replace(views[0], mask=torch.zeros_like(views[0].mask))
+    assert not cull_to_masks(floater, [blind], dilation_px=0).any()  # it is inside the image
+    pred = sphere(1.0) + sphere(0.15, centre=(0.0, 0.0, 1.7))
+    kw = dict(num_samples=N, max_dist=2.0)  # keep the floater's distances (~0.55-0.85) in the mean
+    culled = chamfer_distance(pred, sphere(1.0), cull_views=views, cull_dilation_px=1, **kw)
+    raw = chamfer_distance(pred, sphere(1.0), **kw)
+    assert culled["accuracy"] < 1.5 * nn_spacing(4 * math.pi, N) < raw["accuracy"]
+
+
+def random_unit(n: int, generator: torch.Generator) -> torch.Tensor:
+    x = torch.randn(3, n, generator=generator, dtype=torch.float64)
+    return x / x.norm(dim=0)
+
+
+def rotation(axis: torch.Tensor, angle: float) -> torch.Tensor:
+    a = axis / axis.norm()
+    cross = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
+
+
+def test_normal_mae_of_rotation_about_perpendicular_axis_is_the_angle():
+    g = torch.Generator().manual_seed(0)
+    axis = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    gt = random_unit(16 * 16, g)
+    gt[2] = 0  # all normals perpendicular to the rotation axis
+    gt = gt / gt.norm(dim=0)
+    angle = math.radians(17.0)
+    pred = 2.5 * (rotation(axis, angle) @ gt)  # not unit length: must be renormalised
+    mask = torch.ones(1, 16, 16, dtype=torch.bool)
+    assert normal_mae([pred.view(3, 16, 16)], [gt.view(3, 16, 16)], [mask]) == pytest.approx(17.0, abs=1e-6)
+
+
+def test_normal_mae_general_normals_match_rodrigues_formula_and_average_per_view():
+    g = torch.Generator().manual_seed(1)
+    axis = torch.tensor([1.0, 2.0, -0.5], dtype=torch.float64)
+    a = axis / axis.norm()
+    angle = math.radians(40.0)
+    gt = random_unit(32 * 32, g)
+    pred = rotation(axis, angle) @ gt
+    # Angle between n and R n: cos = cos(t) + (1 - cos(t)) (n . a)^2.
+    cos = math.cos(angle) + (1 - math.cos(angle)) * (a @ gt) ** 2
+    expected = torch.rad2deg(torch.arccos(cos))
+    big = torch.rand(1, 32, 32, generator=g) > 0.3
+    errors = normal_angle_errors(pred.view(3, 32, 32), gt.view(3, 32, 32), big)
+    torch.testing.assert_close(errors, expected[big.flatten()], atol=1e-6, rtol=0)
+    # A second view with one pixel and a 90 degree error: views weigh equally, not pixels.
+    single = torch.zeros(1, 32, 32, dtype=torch.bool)
+    single[0, 5, 7] = True
+    perp = torch.zeros(3, 32, 32, dtype=torch.float64)
+    perp[0] = 1.0
+    other = torch.zeros(3, 32, 32, dtype=torch.float64)
+    other[1] = 1.0
+    mae = normal_mae([pred.view(3, 32, 32), perp], [gt.view(3, 32, 32), other], [big, single])
+    assert mae == pytest.approx((float(expected[big.flatten()].mean()) + 90.0) / 2, abs=1e-6)
+
+
+def test_normal_mae_errors():
+    n = torch.zeros(3, 4, 4)
+    n[2] = -1
+    with pytest.raises(ValueError, match="view 1 is empty"):
+        normal_mae([n, n], [n, n], [torch.ones(1, 4, 4, dtype=torch.bool), torch.zeros(1, 4, 4, dtype=torch.bool)])
+    with pytest.raises(ValueError, match="matching"):
+        normal_mae([n], [n, n], [torch.ones(1, 4, 4, dtype=torch.bool)])
+    with pytest.raises(ValueError, match="mask"):
+        normal_angle_errors(n, n, torch.ones(4, 4, dtype=torch.bool))
+
+
+def test_eval_command_on_mesh_files(tmp_path, capsys):
+    import json
+
+    from polargs_plugin.cli import main
+    from polargs_plugin.mesh import write_mesh
+
+    pred = write_mesh(tmp_path / "pred.ply", sphere(1.0))
+    gt = write_mesh(tmp_path / "gt.ply", sphere(1.05))
+    assert main(["eval", str(pred), "--gt", str(gt), "--num-samples", "50000", "--units", "mm"]) == 0
+    metrics = json.loads((tmp_path / "pred.metrics.json").read_text())
+    assert metrics["chamfer"]["chamfer"] == pytest.approx(0.05, abs=3e-3)
+    assert metrics["chamfer"]["units"] == "mm"
+    assert "0.05" in capsys.readouterr().out
+    # Everything beyond the cap: means are undefined and stored as JSON null, not NaN.
+    out = tmp_path / "capped.json"
+    assert main(["eval", str(pred), "--gt", str(gt), "--num-samples", "1000", "--max-dist", "0.01", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["chamfer"]["chamfer"] is None
