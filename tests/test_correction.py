@@ -119,13 +119,16 @@ def test_propagate_hand_case():
     assert math.isclose(float(filled[0, 0, 2]), (0.4 + 0.8) / 2, rel_tol=1e-6)
 
 
-@pytest.mark.parametrize("step", [1, 2])
-def test_propagate_matches_brute_force_loop(step):
+@pytest.mark.parametrize("step,confined", [(1, False), (2, False), (1, True)])
+def test_propagate_matches_brute_force_loop(step, confined):
     gen = torch.Generator().manual_seed(3)
     C, F, H, W, r, thr = 3, 2, 9, 11, 3, 0.8
     values = torch.rand(C, H, W, generator=gen, dtype=torch.float64)
     features = torch.rand(F, H, W, generator=gen, dtype=torch.float64) * 1.5
     target = torch.rand(1, H, W, generator=gen) < 0.3
+    if confined:  # targets in a corner region: exercises the cropped path
+        target[:, :, :] = False
+        target[:, 5:8, 6:9] = torch.rand(1, 3, 3, generator=gen) < 0.6
     donors = (torch.rand(1, H, W, generator=gen) < 0.6) & ~target
     components = torch.rand(F, H, W, generator=gen) < 0.8
     filled, valid = propagate(values, features, target, donors, r, thr, components, step)

@@ -120,9 +120,22 @@ def propagate(
     num_features = features.shape[0]
     filled = torch.zeros_like(values)
     valid = torch.zeros_like(target_mask)
-    targets = target_mask.reshape(-1).nonzero().squeeze(1)
-    if targets.numel() == 0:
+    rows = target_mask[0].any(dim=1).nonzero()
+    if rows.numel() == 0:
         return filled, valid
+    # Only the targets' bounding box grown by the radius can matter: work on that crop.
+    cols = target_mask[0].any(dim=0).nonzero()
+    top, bottom = max(int(rows[0]) - radius, 0), min(int(rows[-1]) + radius + 1, height)
+    left, right = max(int(cols[0]) - radius, 0), min(int(cols[-1]) + radius + 1, width)
+    if (bottom - top, right - left) != (height, width):
+        crop = (slice(None), slice(top, bottom), slice(left, right))
+        parts = propagate(
+            values[crop], features[crop], target_mask[crop], donor_mask[crop], radius, threshold,
+            None if components is None else components[crop], step,
+        )
+        filled[crop], valid[crop] = parts
+        return filled, valid
+    targets = target_mask.reshape(-1).nonzero().squeeze(1)
 
     # One pixel-major table padded by `radius` (padding = not a donor): a window is then a fixed
     # set of flat offsets, and one row gather fetches features, values and donor flag together.
