@@ -86,3 +86,14 @@ def test_state_dict_round_trip():
     assert (a is None) == (b is None)
     if a is not None:
         assert torch.equal(a.means, b.means)
+
+
+def test_source_depth_prefers_kept_patchmatch_then_opaque_render_then_unconfirmed_patchmatch():
+    from polargs_plugin.densify.densifier import source_depth
+
+    rendered = torch.tensor([[[2.0, 2.0, 2.0, 2.0]]])
+    alpha = torch.tensor([[[0.9, 0.9, 0.1, 0.1]]])
+    pm = torch.tensor([[[3.0, 3.0, 3.0, 0.0]]])
+    kept = torch.tensor([[[True, False, False, False]]])
+    assert torch.equal(source_depth(rendered, alpha, 0.5), torch.tensor([[[2.0, 2.0, 0.0, 0.0]]]))
+    assert torch.equal(source_depth(rendered, alpha, 0.5, pm, kept), torch.tensor([[[3.0, 2.0, 3.0, 0.0]]]))

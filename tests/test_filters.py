@@ -69,3 +69,21 @@ def test_min_consistent_views_counts_sources():
     cfg.min_consistent_views = 2
     two = consistency_filter(depths[:2], None, views[:2], config=cfg, reference=0)
     assert one.any() and not two.any()
+
+
+def test_low_dolp_azimuth_noise_rejects_only_in_proportion_to_its_signal():
+    """A 30 deg azimuth error gives r = |sin 60 deg| = 0.87 in every source: at DoLP 0.02
+    (confidence 0.2) the residual is 0.17 < 0.3 and the pixel stays; at DoLP 0.05 (0.5) it is
+    0.43 and the pixel goes. Renormalising the weights would reject both."""
+    views, renders, depths, normals, aolps, _ = _scene()
+    n = normals[0]
+    c, s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    wrong = [torch.stack([c * n[0] + s * n[1], -s * n[0] + c * n[1], n[2]])] + normals[1:]
+    cfg = FilterConfig()
+    geometric = consistency_filter(depths, None, views, reference=0, config=cfg)
+    assert geometric.sum() > 20
+    for rho, kept in ((0.02, 1.0), (0.05, 0.0)):
+        dolps = [torch.full_like(d, rho) for d in depths]
+        keep = consistency_filter(depths, wrong, views, aolps=aolps, dolps=dolps, reference=0, config=cfg)
+        # a few grazing pixels have a smaller turn of the predicted AoLP in the sources
+        assert abs(keep[geometric].float().mean() - kept) < 0.1

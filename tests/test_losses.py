@@ -6,6 +6,7 @@ import kornia
 import torch
 
 from polargs_plugin.losses import (
+    ReflectiveTargets,
     depth_normal_loss,
     depth_to_points,
     normal_from_depth,
@@ -173,3 +174,35 @@ def test_reflective_replacement_equals_whole_image_computation():
     extra, *_ = reflective_replacement(pred, image, empty, i_diff, empty, i_chro)
     extra.backward()
     assert float(extra) == 0 and float(pred.grad.abs().sum()) == 0
+
+
+def test_reflective_targets_strategies_match_whole_image_values_and_gradients():
+    """Sparse highlights (pixels strategy), and any mask with the box forced, against the
+    whole-image kornia computation: values and gradients."""
+    gen = torch.Generator().manual_seed(7)
+    H, W = 40, 44
+    pred = torch.rand(3, H, W, generator=gen, requires_grad=True)
+    image, i_diff, i_chro = (torch.rand(3, H, W, generator=gen) for _ in range(3))
+    for fraction in (0.01, 0.3):
+        spec = torch.rand(1, H, W, generator=gen) < fraction
+        spec[0, 0, :3] = True  # windows reflected at the image border
+        spec[0, -2:, -1] = True
+        over = (torch.rand(1, H, W, generator=gen) < fraction / 2) & ~spec
+        w_s, w_o = reflective_loss(pred, image, spec, i_diff, over, i_chro)
+        w_plain = photometric_loss(pred, image, spec | over)
+        expected = 0.6 * (w_s + w_o) - w_plain
+        (grad_expected,) = torch.autograd.grad(expected, pred)
+        strategies = set()
+        for limit in (1 << 20, 0):  # 0 forces the box
+            targets = ReflectiveTargets(image, spec, i_diff, over, i_chro, max_window_elements=limit)
+            strategies.add(targets.strategy)
+            extra, l_s, l_o, plain = targets(pred, lambda_ref=0.6)
+            assert torch.allclose(torch.stack([l_s, l_o, plain]), torch.stack([w_s, w_o, w_plain]), atol=1e-6)
+            assert torch.allclose(extra, expected, atol=1e-6)
+            (grad,) = torch.autograd.grad(extra, pred)
+            assert torch.allclose(grad, grad_expected, atol=1e-7)
+            # SSIM off: L1 only, analytic.
+            _, l_s, _, plain = targets(pred, ssim_weight=0.0)
+            l1 = (pred - image).abs().mean(0, keepdim=True)
+            assert torch.allclose(plain, (l1 * (spec | over)).sum() / (H * W), atol=1e-7)
+        assert strategies == ({"pixels", "box"} if fraction < 0.1 else {"box"})

@@ -251,3 +251,17 @@ def test_config_round_trip_and_cpu_preset_scaling():
     assert again == cfg
     d = cfg.density.scaled(cfg.schedule_scale)
     assert (d.refine_start, d.refine_stop, d.refine_every, d.reset_every) == (50, 1500, 10, 300)
+
+
+def test_base_loss_is_vanilla_colour_loss_on_the_background_target(views):
+    import kornia
+
+    from polargs_plugin.losses import photometric_loss
+
+    trainer = Trainer(views, _config(background=(0.2, 0.4, 0.6), ssim_weight=0.3))
+    pred, target = torch.rand(3, SIZE, SIZE), trainer.targets[0]
+    ssim = kornia.metrics.ssim(pred[None], target[None], 11).mean()
+    vanilla = 0.7 * (pred - target).abs().mean() + 0.3 * (1 - ssim)
+    assert torch.allclose(trainer.base_loss(pred, target), vanilla, atol=1e-6)
+    # the very function PolarHooks' reflective replacement assumes, so the cancellation is exact
+    assert torch.equal(trainer.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.3))

@@ -34,7 +34,7 @@ from torch import Tensor
 from polargs_plugin.config import PolarConfig
 from polargs_plugin.correction import compute_polar_maps
 from polargs_plugin.io import atomic_path
-from polargs_plugin.losses import depth_normal_loss, normal_loss, reflective_replacement, scale_loss
+from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, scale_loss
 from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
 
 __all__ = ["PolarHooks", "maps_cache_key"]
@@ -97,7 +97,7 @@ class PolarHooks:
         self.maps: dict[str, PolarMaps] = {}
         self._densifier: Any = None
         self._pending_state: dict[str, Any] | None = None
-        self._on_device: dict[tuple[str, str], dict[str, Tensor]] = {}
+        self._reflective: dict[tuple[str, torch.device], ReflectiveTargets | None] = {}
 
     # ----------------------------------------------------------------------------- preprocess
     def preprocess(self, views: list[View]) -> list[PolarMaps]:
@@ -112,8 +112,11 @@ class PolarHooks:
         names = [view.name for view in views]
         if len(set(names)) != len(names):
             raise ValueError("view names must be unique: the maps are looked up by name")
-        self._on_device.clear()
+        self._reflective.clear()
         self.maps = {view.name: self._load_or_compute(view) for view in views}
+        if self.config.correction.enabled and self.config.losses.use_ref:
+            for view in views:  # per-view constants of L_ref, on the views' device, built once
+                self._reflective_targets(view, view.stokes.device)
         if self.config.densify.enabled:
             from polargs_plugin.densify.densifier import PolarDensifier
 
@@ -138,28 +141,31 @@ class PolarHooks:
             torch.save({k: v.cpu() for k, v in _maps_to_dict(maps).items()}, tmp)
         return maps
 
-    def _device_maps(self, view: View, device: torch.device) -> dict[str, Tensor]:
-        key = (view.name, str(device))
-        if key not in self._on_device:
+    def _reflective_targets(self, view: View, device: torch.device) -> ReflectiveTargets | None:
+        """The view's :class:`ReflectiveTargets` on ``device`` (built on first use), or ``None``
+        when its maps have no reflective masks."""
+        key = (view.name, torch.device(device))
+        if key not in self._reflective:
             if view.name not in self.maps:
                 raise KeyError(f"view '{view.name}' was not preprocessed: call hooks.preprocess(views) first")
             maps = self.maps[view.name]
-            # Clamped like the trainers' targets, so the plain part cancels their colour loss.
-            cached = {"image": maps.intensity.clamp(0, 1).to(device)}
+            targets = None
             if maps.specular_mask is not None:
-                cached.update(
-                    specular=maps.specular_mask.to(device),
-                    overexposed=(maps.overexposed_mask & maps.extras["i_chro_valid"]).to(device),
-                    i_diff=maps.i_diff.to(device),
-                    i_chro=maps.i_chro.to(device),
+                # Clamped like the trainers' targets, so the plain part cancels their colour loss.
+                targets = ReflectiveTargets(
+                    maps.intensity.clamp(0, 1).to(device),
+                    maps.specular_mask.to(device),
+                    maps.i_diff.to(device),
+                    (maps.overexposed_mask & maps.extras["i_chro_valid"]).to(device),
+                    maps.i_chro.to(device),
                 )
-            self._on_device[key] = cached
-        return self._on_device[key]
+            self._reflective[key] = targets
+        return self._reflective[key]
 
     # ----------------------------------------------------------------------------------- loss
     def loss(
         self, iteration: int, view: View, render: RenderOut, gaussians: GaussianState
-    ) -> tuple[Tensor, dict[str, float]]:
+    ) -> tuple[Tensor, dict[str, Tensor]]:
         r"""The loss to ADD to the trainer's own loss, before backward.
 
         Contract for PC (the reflective-aware colour loss). The trainer's colour loss is assumed
@@ -176,6 +182,8 @@ class PolarHooks:
 
         Other terms: ``alpha * L_n`` once the densifier holds a PatchMatch normal for this view;
         ``beta * L_dn`` from ``config.losses.depth_normal_from_iter`` on; ``gamma * L_scale``.
+        Only the terms switched on at this iteration are computed, from per-view constants built
+        at :meth:`preprocess`; nothing here waits for the device (the logs stay tensors).
 
         Args:
             iteration: the trainer's iteration (0-based).
@@ -184,37 +192,35 @@ class PolarHooks:
             gaussians: the current Gaussians (activated, autograd-connected).
 
         Returns:
-            ``(extra, logs)``: scalar tensor on the render's device and a dict of floats (each
-            active term, unweighted).
+            ``(extra, logs)``: scalar tensor on the render's device and a dict of detached scalar
+            tensors (each active term, unweighted; ``float()`` them only when logging).
         """
         cfg = self.config.losses
         color = render.color
-        extra = color.new_zeros(())
-        logs: dict[str, float] = {}
+        terms: list[Tensor] = []
+        logs: dict[str, Tensor] = {}
         if self.config.correction.enabled and cfg.use_ref:
-            maps = self._device_maps(view, color.device)
-            if "specular" in maps:
-                pc, l_s, l_o, plain = reflective_replacement(
-                    color, maps["image"], maps["specular"], maps["i_diff"], maps["overexposed"], maps["i_chro"],
-                    cfg.lambda_ref, cfg.ssim_weight,
-                )
-                extra = extra + pc
-                logs.update(l_s=float(l_s.detach()), l_o=float(l_o.detach()), l_plain_reflective=float(plain.detach()))
+            targets = self._reflective_targets(view, color.device)
+            if targets is not None:
+                pc, l_s, l_o, plain = targets(color, cfg.lambda_ref, cfg.ssim_weight)
+                terms.append(pc)
+                logs.update(l_s=l_s.detach(), l_o=l_o.detach(), l_plain_reflective=plain.detach())
         if cfg.use_normal:
             target = self.normal_target(view.name)
             if target is not None:
                 normal, valid = (t.to(color.device) for t in target)
                 l_n = normal_loss(render.normal, normal, valid)
-                extra = extra + cfg.alpha_normal * l_n
-                logs["l_n"] = float(l_n.detach())
+                terms.append(cfg.alpha_normal * l_n)
+                logs["l_n"] = l_n.detach()
         if cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter:
             l_dn = depth_normal_loss(render.depth, render.normal, render.alpha, view.K)
-            extra = extra + cfg.beta_depth_normal * l_dn
-            logs["l_dn"] = float(l_dn.detach())
+            terms.append(cfg.beta_depth_normal * l_dn)
+            logs["l_dn"] = l_dn.detach()
         if cfg.use_scale:
             l_scale = scale_loss(gaussians.scales)
-            extra = extra + cfg.gamma_scale * l_scale
-            logs["l_scale"] = float(l_scale.detach())
+            terms.append(cfg.gamma_scale * l_scale)
+            logs["l_scale"] = l_scale.detach()
+        extra = sum(terms[1:], terms[0]) if terms else color.new_zeros(())
         return extra, logs
 
     # -------------------------------------------------------------------------------- densify

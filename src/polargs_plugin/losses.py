@@ -21,6 +21,7 @@ __all__ = [
     "photometric_loss",
     "reflective_loss",
     "mask_box",
+    "ReflectiveTargets",
     "reflective_replacement",
     "normal_loss",
     "depth_to_points",
@@ -148,6 +149,135 @@ def mask_box(mask: Tensor, margin: int) -> tuple[slice, slice] | None:
     return slice(top, bottom), slice(left, right)
 
 
+def _reflect(index: Tensor, size: int) -> Tensor:
+    """Indices outside [0, size) mirrored without repeating the edge (torch's 'reflect' padding)."""
+    index = index.abs()
+    return torch.where(index > size - 1, 2 * (size - 1) - index, index)
+
+
+def _ssim_from_moments(mu1: Tensor, sq1: Tensor, mu2: Tensor, sq2: Tensor, cross: Tensor) -> Tensor:
+    """SSIM from windowed means, second moments and cross moment, in kornia's order of operations
+    (max_val 1, eps 1e-12), so that the values match ``kornia.metrics.ssim`` to rounding."""
+    mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    c1, c2 = 0.01**2, 0.03**2
+    num = (2.0 * mu1_mu2 + c1) * (2.0 * (cross - mu1_mu2) + c2)
+    den = (mu1_sq + mu2_sq + c1) * ((sq1 - mu1_sq) + (sq2 - mu2_sq) + c2)
+    return num / (den + 1e-12)
+
+
+class ReflectiveTargets:
+    r"""One view's constants of :func:`reflective_replacement`, built once (e.g. at preprocess).
+
+    The SSIM of a prediction against a fixed target needs the target's windowed mean and second
+    moment, which do not change during training: they are computed here, with the reflective
+    pixels and the assembled L_ref target (training colour with I_diff on specular and I_chro on
+    overexposed pixels). A call then filters only the prediction's moments and its products with
+    the two targets (corrected and plain), where the reflective pixels' SSIM windows reach:
+
+    - *pixels* strategy: gathers the reflect-padded 11x11 window of each reflective pixel
+      (cheapest when highlights are sparse);
+    - *box* strategy: separable Gaussian filtering of the reflective pixels' bounding box grown by
+      the window radius (cheapest for dense highlights, and bounded in memory).
+
+    Both give the whole-image values of :func:`reflective_loss` and :func:`photometric_loss` on
+    the reflective pixels (kornia's SSIM: Gaussian window 11, sigma 1.5, 'reflect' same padding)
+    up to float rounding. A call needs no host-device synchronisation.
+
+    Args:
+        image: :math:`(C, H, W)` training colour (the trainer's target).
+        specular_mask, overexposed_mask: :math:`(1, H, W)` bool.
+        i_diff, i_chro: :math:`(C, H, W)` targets on those masks.
+        max_window_elements: largest number of (pixel, window tap) pairs the *pixels* strategy
+            may hold; beyond it (or when it would cost more than the box) the box is used.
+    """
+
+    def __init__(
+        self,
+        image: Tensor,
+        specular_mask: Tensor,
+        i_diff: Tensor,
+        overexposed_mask: Tensor,
+        i_chro: Tensor,
+        max_window_elements: int = 1 << 20,
+    ) -> None:
+        height, width = image.shape[-2:]
+        self.count = height * width
+        self.window = min(_SSIM_WINDOW, 2 * min(height, width) - 1)
+        reflective = specular_mask | overexposed_mask
+        target = torch.where(specular_mask, i_diff, torch.where(overexposed_mask, i_chro, image))
+        targets = torch.stack([target, image])  # (2, C, H, W): corrected, plain
+        self.kernel = kornia.filters.get_gaussian_kernel1d(self.window, 1.5, device=image.device, dtype=image.dtype)
+        box = mask_box(reflective, self.window // 2)
+        self.strategy = "empty" if box is None else "box"
+        if box is None:
+            return
+        rows, cols = box
+        pixels = reflective.reshape(-1).nonzero().squeeze(1)
+        box_area = (rows.stop - rows.start) * (cols.stop - cols.start)
+        # Gathering costs about window^2 per pixel, the separable box filters 2 window per box pixel.
+        if pixels.numel() * self.window**2 <= min(2 * self.window * box_area, max_window_elements):
+            self.strategy = "pixels"
+            radius = self.window // 2
+            offsets = torch.arange(-radius, radius + 1, device=pixels.device)
+            win_rows = _reflect(pixels[:, None] // width + offsets, height)  # (P, k)
+            win_cols = _reflect(pixels[:, None] % width + offsets, width)
+            self.windows = (win_rows[:, :, None] * width + win_cols[:, None, :]).reshape(len(pixels), -1)
+            self.weights = (self.kernel[0, :, None] * self.kernel[0, None, :]).reshape(-1)  # (k*k,)
+            self.pixels = pixels
+            flat = targets.reshape(*targets.shape[:2], -1)
+            self.targets = flat[:, :, self.windows]  # (2, C, P, k*k)
+            self.values = flat[:, :, pixels]  # (2, C, P)
+            self.specular = specular_mask.reshape(-1)[pixels]
+            self.overexposed = overexposed_mask.reshape(-1)[pixels]
+            self.reflective = torch.ones_like(self.specular)
+        else:
+            self.box = box
+            self.targets = self.values = targets[:, :, rows, cols]  # (2, C, h, w)
+            self.specular = specular_mask[:, rows, cols]
+            self.overexposed = overexposed_mask[:, rows, cols]
+            self.reflective = reflective[:, rows, cols]
+        self.target_mean = self._filter(self.targets)
+        self.target_sq = self._filter(self.targets * self.targets)
+
+    def _filter(self, x: Tensor) -> Tensor:
+        """Gaussian-windowed mean: over the last axis (windows) or over the box (images)."""
+        if self.strategy == "pixels":
+            return x @ self.weights
+        return kornia.filters.filter2d_separable(x, self.kernel, self.kernel, border_type="reflect")
+
+    def _losses(self, pred: Tensor, ssim_weight: float) -> Tensor:
+        """(2, ...) photometric loss of ``pred`` against the corrected and plain targets, at the
+        reflective pixels (*pixels*) or over the box (*box*)."""
+        if self.strategy == "pixels":
+            flat = pred.reshape(pred.shape[0], -1)
+            pred, values = flat[:, self.windows], flat[:, self.pixels]  # (C, P, k*k), (C, P)
+        else:
+            rows, cols = self.box
+            pred = values = pred[:, rows, cols]
+        l1 = (values - self.values).abs().mean(dim=1)
+        if ssim_weight == 0:
+            return l1
+        # One filtering call for the prediction's mean, its square and its products with both targets.
+        moments = self._filter(torch.cat([pred[None], (pred * pred)[None], pred * self.targets]))
+        mu, sq, cross = moments[0], moments[1], moments[2:]
+        ssim = _ssim_from_moments(mu, sq, self.target_mean, self.target_sq, cross).mean(dim=1)
+        return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
+
+    def __call__(
+        self, pred: Tensor, lambda_ref: float = 1.0, ssim_weight: float = 0.2
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(extra, L_s, L_o, L_plain_reflective)`` of :func:`reflective_replacement` for ``pred``
+        :math:`(C, H, W)`; all 0 (connected to ``pred``) when no pixel is reflective."""
+        if self.strategy == "empty":
+            zero = pred.sum() * 0
+            return zero, zero, zero, zero
+        corrected, plain = self._losses(pred, ssim_weight)
+        l_s = (corrected * self.specular).sum() / self.count
+        l_o = (corrected * self.overexposed).sum() / self.count
+        l_plain = (plain * self.reflective).sum() / self.count
+        return lambda_ref * (l_s + l_o) - l_plain, l_s, l_o, l_plain
+
+
 def reflective_replacement(
     pred: Tensor,
     image: Tensor,
@@ -161,10 +291,9 @@ def reflective_replacement(
     r"""What turns a plain whole-image colour loss into :math:`L_{non} + \lambda_{ref} L_{ref}`.
 
     ``extra = lambda_ref * (L_s + L_o) - L_plain(reflective)``, with ``L_plain(reflective)`` =
-    ``photometric_loss(pred, image, reflective)``. Computed on the reflective pixels' bounding box
-    grown by the SSIM window radius, which gives the same values as the whole image (every
-    reflective pixel's window lies inside the box or meets the same image border), at the cost
-    of the highlights' area only; both SSIM maps come from one batched call.
+    ``photometric_loss(pred, image, reflective)``. Computed where the reflective pixels' SSIM
+    windows reach only (:class:`ReflectiveTargets`), with the whole image's values. Build a
+    :class:`ReflectiveTargets` once per view instead when calling this every iteration.
 
     Args:
         pred: :math:`(C, H, W)` rendered colour.
@@ -178,20 +307,8 @@ def reflective_replacement(
         ``(extra, L_s, L_o, L_plain_reflective)`` scalars; all 0 (connected to ``pred``) when no
         pixel is reflective.
     """
-    count = pred[0].numel()
-    box = mask_box(specular_mask | overexposed_mask, _SSIM_WINDOW // 2)
-    if box is None:
-        zero = pred.sum() * 0
-        return zero, zero, zero, zero
-    rows, cols = box
-    pred, image, i_diff, i_chro = (x[:, rows, cols] for x in (pred, image, i_diff, i_chro))
-    specular, overexposed = specular_mask[:, rows, cols], overexposed_mask[:, rows, cols]
-    target = torch.where(specular, i_diff, torch.where(overexposed, i_chro, image))
-    corrected, plain = _loss_maps(pred, torch.stack([target, image]), ssim_weight)
-    l_s = (corrected * specular).sum() / count
-    l_o = (corrected * overexposed).sum() / count
-    l_plain = (plain * (specular | overexposed)).sum() / count
-    return lambda_ref * (l_s + l_o) - l_plain, l_s, l_o, l_plain
+    targets = ReflectiveTargets(image, specular_mask, i_diff, overexposed_mask, i_chro)
+    return targets(pred, lambda_ref, ssim_weight)
 
 
 def normal_loss(normal: Tensor, target: Tensor, valid: Tensor) -> Tensor:

@@ -7,10 +7,13 @@ On each scheduled iteration, for the current training view:
 3. run polar-enhanced PatchMatch initialised from the rendered depth and normal, with the view's
    AoLP / DoLP (patchmatch.py);
 4. keep pixels whose photometric cost is below ``filters.max_photometric_cost`` and that are
-   multi-view geometrically and polarimetrically consistent (filters.py). The source depths are
-   this densifier's earlier PatchMatch depths of those views where it has them (cached), else
-   their rendered depths; so fills of holes shared by every render are confirmed only once
-   neighbouring views have been processed;
+   multi-view geometrically and polarimetrically consistent (filters.py). A source's depth is,
+   per pixel, its last PatchMatch depth from this densifier where that passed the filters
+   (cached), else its current rendered depth where the render is opaque, else its last
+   unfiltered PatchMatch depth. Unconfirmed PatchMatch depths are thus evidence only inside
+   render holes (so fills of holes shared by every render can be confirmed once neighbouring
+   views have been processed); elsewhere they can be far off early in training (textureless
+   surfaces, a rough model), and checking against them rejects good pixels;
 5. store the kept normals as the L_n target ``N_opt`` of the view (:meth:`normal_target`);
 6. seed new Gaussians where the render has a hole or a wrong surface (seeding.py).
 """
@@ -27,7 +30,31 @@ from polargs_plugin.densify.seeding import seed_gaussians, seed_mask
 from polargs_plugin.densify.view_selection import scene_center, select_sources
 from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
 
-__all__ = ["PolarDensifier"]
+__all__ = ["PolarDensifier", "source_depth"]
+
+
+def source_depth(
+    rendered: Tensor, alpha: Tensor, alpha_threshold: float,
+    patchmatch_depth: Tensor | None = None, kept: Tensor | None = None,
+) -> Tensor:
+    """A source view's depth as evidence for the consistency filter.
+
+    Per pixel: the PatchMatch depth where it passed the filters, else the rendered depth where
+    the render is opaque, else the unconfirmed PatchMatch depth (render holes), else 0.
+
+    Args:
+        rendered, alpha: (1, H, W) current rendered depth and opacity of the source.
+        alpha_threshold: the render counts where ``alpha > alpha_threshold``.
+        patchmatch_depth: (1, H, W) the source's last PatchMatch depth (0 = none), or None.
+        kept: (1, H, W) bool, where that depth passed the filters (needed with it).
+
+    Returns:
+        (1, H, W) depth (0 = no evidence).
+    """
+    depth = torch.where(alpha > alpha_threshold, rendered, torch.zeros_like(rendered))
+    if patchmatch_depth is None:
+        return depth
+    return torch.where(kept | (depth <= 0), patchmatch_depth, depth)
 
 
 class PolarDensifier:
@@ -52,6 +79,8 @@ class PolarDensifier:
         self._targets: dict[str, tuple[Tensor, Tensor]] = {}
         self._generator = torch.Generator().manual_seed(config.densify.patchmatch.seed)
         self.calls = 0
+        # running pixel counts of each stage (photometric, kept = N_opt, seed), for diagnostics
+        self.stats = {"estimated": 0, "photometric": 0, "kept": 0, "seeds": 0, "added": 0}
 
     def should_run(self, iteration: int) -> bool:
         """Whether ``iteration`` is on the schedule (start <= it <= end, it % interval == 0)."""
@@ -120,8 +149,9 @@ class PolarDensifier:
         src_depths = []
         for v, r in zip(src_views, src_renders):
             cached = self._depths.get(v.name)
-            rendered = torch.where(r.alpha > cfg.alpha_threshold, r.depth, torch.zeros_like(r.depth))
-            src_depths.append(cached.to(dev) if cached is not None else rendered)
+            kept = self._targets[v.name][1].to(dev) if cached is not None else None
+            src_depths.append(source_depth(r.depth, r.alpha, cfg.alpha_threshold,
+                                           cached.to(dev) if cached is not None else None, kept))
         all_maps = [self.maps.get(v.name) for v in [view] + src_views]
         polar = all(m is not None for m in all_maps)
         keep = consistency_filter(
@@ -141,6 +171,10 @@ class PolarDensifier:
             stride=cfg.stride, max_new=cfg.max_new_per_call, initial_opacity=cfg.initial_opacity,
             thin_ratio=cfg.thin_scale_ratio, generator=self._generator,
         )
+        for key, count in (("estimated", mask.sum() if mask is not None else depth.numel()),
+                           ("photometric", photometric_ok.sum()), ("kept", keep.sum()),
+                           ("seeds", seeds.sum()), ("added", len(new))):
+            self.stats[key] += int(count)
         return new if len(new) > 0 else None
 
     def _device_generator(self, device: torch.device) -> torch.Generator:

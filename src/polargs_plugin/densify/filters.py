@@ -11,11 +11,14 @@ Polarimetric residual (our definition; the paper names it without a formula): ro
 reference normal into each consistent source camera, predict its diffuse AoLP there
 (optics.azimuth.aolp_from_normals) and compare with the AoLP observed at ``p_j``:
 ``r_j = |sin 2 (phi_pred - phi_obs)|`` in [0, 1], zero for agreement modulo pi/2 (so diffuse and
-specular explanations both pass: the pi/2 ambiguity). Views are averaged with the DoLP weight
-``w_j = clip(rho_j / polar_dolp_reference, 0, 1)`` because AoLP is noise where DoLP is low:
-``R = sum_j w_j r_j / sum_j w_j``. The pixel fails when ``R > max_polar_residual``; pixels with no
-weight (no polarization signal anywhere) are not judged by it. ``max_polar_residual`` 0.3
-corresponds to about 8.7 degrees.
+specular explanations both pass: the pi/2 ambiguity). Each residual is scaled by the confidence
+``w_j = clip(rho_j / polar_dolp_reference, 0, 1)`` because AoLP is noise where DoLP is low, and
+averaged over the ``k`` consistent sources: ``R = sum_j w_j r_j / k``. The pixel fails when
+``R > max_polar_residual`` (0.3, about 8.7 degrees at full confidence). Dividing by ``k`` rather
+than ``sum_j w_j`` matters: the latter renormalises the weights, so a pixel seen only at low DoLP
+(e.g. a diffuse surface facing the camera, AoLP noise of tens of degrees) would be judged on that
+noise at full strength; here such a pixel can only be rejected in proportion to its signal, and
+one with no polarization signal is not judged at all.
 """
 
 from __future__ import annotations
@@ -165,7 +168,6 @@ def consistency_filter(
         others = [j for j in (sources if sources is not None else range(len(views))) if j != i]
         count = torch.zeros_like(depths[i], dtype=torch.int64)
         res_sum = torch.zeros_like(depths[i], dtype=torch.float32)
-        w_sum = torch.zeros_like(depths[i], dtype=torch.float32)
         polar = cfg.use_polar and aolps is not None and normals is not None
         for j in others:
             reproj, rel, valid, pix = reprojection_check(
@@ -180,12 +182,9 @@ def consistency_filter(
                     pix, aolps[j], dolps[j] if dolps is not None else None,
                     dolp_reference=cfg.polar_dolp_reference, model=cfg.azimuth_model,
                 )
-                w = w * ok
-                res_sum += w * r
-                w_sum += w
+                res_sum += (w * r) * ok
         keep = (count >= cfg.min_consistent_views) & (depths[i] > 0)
         if polar:
-            residual = res_sum / w_sum.clamp_min(1e-12)
-            keep = keep & ((w_sum <= 0) | (residual <= cfg.max_polar_residual))
+            keep = keep & (res_sum / count.clamp_min(1) <= cfg.max_polar_residual)
         masks.append(keep)
     return masks[0] if reference is not None else torch.stack(masks)

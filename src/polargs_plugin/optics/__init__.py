@@ -28,6 +28,7 @@ from polargs_plugin.optics.mosaic import (
     MOSAIC_PATTERNS,
     POLARIZER_LATTICE,
     demosaic_polar,
+    stokes_from_raw,
     mosaic_from_intensities,
 )
 from polargs_plugin.optics.stokes import (
@@ -64,6 +65,7 @@ __all__ = [
     "MOSAIC_PATTERNS",
     "POLARIZER_LATTICE",
     "demosaic_polar",
+    "stokes_from_raw",
     "mosaic_from_intensities",
     "POLARIZER_ANGLES_DEG",
     "POLARIZER_ANGLES_RAD",

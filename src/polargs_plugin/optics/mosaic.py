@@ -15,18 +15,24 @@ then the polarization lattice of each colour channel. The result is RGB (polanal
 Integer data on the CPU goes through OpenCV (as polanalyser does, and fast); float data and
 tensors on other devices through an equivalent torch implementation, so a raw tensor on the GPU
 is demosaiced there. Tests pin both paths to polanalyser.
+
+:func:`stokes_from_raw` is the fused fast path to Stokes: a numba kernel forms (s0, s1, s2) of
+each pixel from the integer interpolated samples of its 3x3 neighbourhood, so the four float
+angle images are never materialised (same numbers as demosaic_polar + stokes_from_intensities).
 """
 
 from __future__ import annotations
 
 import cv2
+import numba
 import numpy as np
 import torch
 from torch import Tensor
 
 from polargs_plugin.io import PolarInputError
+from polargs_plugin.optics.stokes import stokes_from_intensities
 
-__all__ = ["MOSAIC_PATTERNS", "POLARIZER_LATTICE", "demosaic_polar", "mosaic_from_intensities"]
+__all__ = ["MOSAIC_PATTERNS", "POLARIZER_LATTICE", "demosaic_polar", "mosaic_from_intensities", "stokes_from_raw"]
 
 MOSAIC_PATTERNS = ("mono", "rgb")
 #: (row, column) offset of each polarizer angle's stride-2 sub-lattice, in 0/45/90/135 order.
@@ -151,6 +157,32 @@ def _full_scale(raw: Tensor, bit_depth: int | None, source: str) -> float:
     return full
 
 
+def _checked_raw(raw: np.ndarray | Tensor, pattern: str, bit_depth: int | None, source: str) -> tuple[Tensor, float]:
+    """The raw frame as a tensor and its full-scale value, after every input check."""
+    if pattern not in MOSAIC_PATTERNS:
+        raise PolarInputError(source, f"unknown mosaic pattern {pattern!r}, expected one of {MOSAIC_PATTERNS}")
+    raw = _as_tensor(raw, source)
+    if raw.ndim != 2:
+        raise PolarInputError(source, f"raw mosaic must be 2-D (H, W), got shape {tuple(raw.shape)}")
+    h, w = raw.shape
+    step = 2 if pattern == "mono" else 4
+    if h % step or w % step or min(h, w) < _MIN_SIZE[pattern]:
+        raise PolarInputError(
+            source,
+            f"{pattern} mosaic size {h}x{w} must be a multiple of {step} and at least "
+            f"{_MIN_SIZE[pattern]} pixels on each side",
+        )
+    if raw.dtype == torch.bool or raw.is_complex():
+        raise PolarInputError(source, f"raw mosaic has unsupported dtype {raw.dtype}")
+    full = _full_scale(raw, bit_depth, source)
+    return raw, full
+
+
+def _integer_array(raw: Tensor) -> np.ndarray:
+    """CPU integer raw tensor -> uint8/uint16 numpy array (the dtypes OpenCV takes)."""
+    return raw.numpy() if raw.dtype in _NATIVE_BITS else raw.to(torch.int32).numpy().astype(np.uint16)
+
+
 def demosaic_polar(raw: np.ndarray | Tensor, pattern: str = "mono", bit_depth: int | None = None,
                    source: str = "") -> Tensor:
     """Split and interpolate a polarization-sensor raw frame into four full-resolution images.
@@ -180,28 +212,12 @@ def demosaic_polar(raw: np.ndarray | Tensor, pattern: str = "mono", bit_depth: i
         >>> demosaic_polar(raw)[:, 0, 1, 1] * 255
         tensor([  0.,  45.,  90., 135.])
     """
-    if pattern not in MOSAIC_PATTERNS:
-        raise PolarInputError(source, f"unknown mosaic pattern {pattern!r}, expected one of {MOSAIC_PATTERNS}")
-    raw = _as_tensor(raw, source)
-    if raw.ndim != 2:
-        raise PolarInputError(source, f"raw mosaic must be 2-D (H, W), got shape {tuple(raw.shape)}")
-    h, w = raw.shape
-    step = 2 if pattern == "mono" else 4
-    if h % step or w % step or min(h, w) < _MIN_SIZE[pattern]:
-        raise PolarInputError(
-            source,
-            f"{pattern} mosaic size {h}x{w} must be a multiple of {step} and at least "
-            f"{_MIN_SIZE[pattern]} pixels on each side",
-        )
-    if raw.dtype == torch.bool or raw.is_complex():
-        raise PolarInputError(source, f"raw mosaic has unsupported dtype {raw.dtype}")
-    full = _full_scale(raw, bit_depth, source)
+    raw, full = _checked_raw(raw, pattern, bit_depth, source)
     if raw.is_floating_point():
         angles = _demosaic_torch(raw.to(torch.float32), pattern, exact_integer=False)
     elif raw.device.type == "cpu":
         # Same numbers as the torch path (tests pin it), several times faster on the CPU.
-        array = raw.numpy() if raw.dtype in _NATIVE_BITS else raw.to(torch.int32).numpy().astype(np.uint16)
-        angles = torch.from_numpy(_demosaic_opencv(array, pattern))
+        angles = torch.from_numpy(_demosaic_opencv(_integer_array(raw), pattern))
     else:
         # int32 holds sums of four 16-bit samples (torch's uint16 lacks arithmetic).
         angles = _demosaic_torch(raw.to(torch.int32), pattern, exact_integer=True)
@@ -219,6 +235,18 @@ def _demosaic_torch(x: Tensor, pattern: str, exact_integer: bool) -> Tensor:
     return _demosaic_polar_lattices(colour, exact_integer).transpose(0, 1)
 
 
+def _demosaic_bayer_sublattices(raw: np.ndarray) -> np.ndarray:
+    """(H, W) uint8/uint16 colour-polarization mosaic -> (3, H, W) RGB, still polarization-mosaicked.
+
+    Each polarizer's stride-2 sub-lattice is an RGGB mosaic, demosaiced on its own (OpenCV).
+    """
+    colour = np.empty((3, *raw.shape), dtype=raw.dtype)
+    for row, col in POLARIZER_LATTICE:
+        rgb = cv2.cvtColor(np.ascontiguousarray(raw[row::2, col::2]), cv2.COLOR_BayerBG2RGB)
+        colour[:, row::2, col::2] = rgb.transpose(2, 0, 1)
+    return colour
+
+
 def _demosaic_opencv(raw: np.ndarray, pattern: str) -> np.ndarray:
     """(H, W) uint8/uint16 mosaic -> (4, C, H, W) float32 levels, OpenCV's bilinear Bayer.
 
@@ -233,12 +261,87 @@ def _demosaic_opencv(raw: np.ndarray, pattern: str) -> np.ndarray:
 
     if pattern == "mono":
         return polar(raw)[:, None].astype(np.float32)
-    colour = np.empty((*raw.shape, 3), dtype=raw.dtype)
-    for row, col in POLARIZER_LATTICE:
-        colour[row::2, col::2] = cv2.cvtColor(np.ascontiguousarray(raw[row::2, col::2]), cv2.COLOR_BayerBG2RGB)
+    colour = _demosaic_bayer_sublattices(raw)
     out = np.empty((4, 3, *raw.shape), dtype=np.float32)
     for channel in range(3):
-        out[:, channel] = polar(np.ascontiguousarray(colour[..., channel]))
+        out[:, channel] = polar(colour[channel])
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _stokes_kernel(image: np.ndarray, full: float, out: np.ndarray) -> None:  # pragma: no cover (numba)
+    """Interior of (3, C, H, W) float32 Stokes ``out`` from a (C, H, W) integer polarization mosaic.
+
+    A pixel's own value is the sample of its lattice; the means of its left/right, up/down and
+    4 diagonal neighbours (rounded half up, as OpenCV does) are those of the other three. With
+    POLARIZER_LATTICE (90 at (0, 0), 45 at (0, 1), 135 at (1, 0), 0 at (1, 1)), on even rows
+    s1, s2 = diagonal - own, horizontal - vertical where x + y is even (90 or 0 deg) and
+    vertical - horizontal, own - diagonal where it is odd; odd rows flip both signs. Written
+    without per-pixel branches on memory so that LLVM vectorizes the row loop.
+    """
+    channels, h, w = image.shape
+    full_f, twice_full = np.float32(full), np.float32(2.0 * full)
+    for job in numba.prange(channels * (h - 2)):
+        c, y = job // (h - 2), job % (h - 2) + 1
+        up, mid, down = image[c, y - 1], image[c, y], image[c, y + 1]
+        out0, out1, out2 = out[0, c, y], out[1, c, y], out[2, c, y]
+        sign = np.int32(1 - 2 * (y & 1))
+        for x in range(1, w - 1):
+            own = np.int32(mid[x])
+            horizontal = (np.int32(mid[x - 1]) + np.int32(mid[x + 1]) + 1) >> 1
+            vertical = (np.int32(up[x]) + np.int32(down[x]) + 1) >> 1
+            diagonal = (
+                np.int32(up[x - 1]) + np.int32(up[x + 1]) + np.int32(down[x - 1]) + np.int32(down[x + 1]) + 2
+            ) >> 2
+            a, b = (diagonal - own) * sign, (horizontal - vertical) * sign
+            odd = ((x + y) & 1) == 1
+            # Integer sums are exact in float32 and one correctly rounded division follows, as in
+            # demosaic_polar's level / full scale.
+            out0[x] = np.float32(own + horizontal + vertical + diagonal) / twice_full
+            out1[x] = np.float32(-b if odd else a) / full_f
+            out2[x] = np.float32(-a if odd else b) / full_f
+
+
+def stokes_from_raw(raw: np.ndarray | Tensor, pattern: str = "mono", bit_depth: int | None = None,
+                    source: str = "") -> Tensor:
+    """Stokes images straight from a polarization-sensor raw frame (fused demosaic + Stokes).
+
+    Equal (to float32 rounding) to ``stokes_from_intensities(demosaic_polar(raw, pattern,
+    bit_depth))``, hence to polanalyser's demosaicing + calcStokes divided by full scale. Integer
+    data on the CPU runs a fused kernel that never builds the four angle images (several times
+    less memory traffic); float data and tensors on other devices take the unfused path.
+
+    Args:
+        raw: :math:`(H, W)` raw mosaic, numpy array or tensor (as for :func:`demosaic_polar`).
+        pattern: ``"mono"`` (IMX250MZR) or ``"rgb"`` (IMX250MYR).
+        bit_depth: bits of the raw values; default 8 for uint8, 16 for uint16.
+        source: file the raw frame came from, named in error messages.
+
+    Returns:
+        :math:`(3, C, H, W)` float32 Stokes (s0, s1, s2) in units of full scale, C = 1 or 3 (RGB),
+        on the device of ``raw``.
+
+    Raises:
+        PolarInputError: as :func:`demosaic_polar`.
+
+    Example:
+        >>> raw = np.tile(np.array([[0, 50], [50, 100]], dtype=np.uint8), (2, 2))  # 90/45/135/0
+        >>> (stokes_from_raw(raw)[:, 0, 1, 1] * 255).round()
+        tensor([100., 100.,   0.])
+    """
+    raw, full = _checked_raw(raw, pattern, bit_depth, source)
+    if raw.is_floating_point() or raw.device.type != "cpu":
+        return stokes_from_intensities(demosaic_polar(raw, pattern, bit_depth, source))
+    array = _integer_array(raw)
+    image = array[None] if pattern == "mono" else _demosaic_bayer_sublattices(array)
+    # numpy asks the kernel for transparent huge pages on large arrays (torch.empty does not):
+    # first-touch page faults on the 9 output planes otherwise cost more than the kernel.
+    out = torch.from_numpy(np.empty((3, image.shape[0], *array.shape), dtype=np.float32))
+    _stokes_kernel(image, full, out.numpy())
+    # OpenCV repeats the inner neighbour on the one-pixel border (columns first, then rows);
+    # Stokes are linear per pixel, so repeating them is the same.
+    out[..., 0], out[..., -1] = out[..., 1], out[..., -2]
+    out[..., 0, :], out[..., -1, :] = out[..., 1, :], out[..., -2, :]
     return out
 
 

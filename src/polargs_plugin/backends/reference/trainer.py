@@ -5,7 +5,9 @@ One iteration (1-based, as in vanilla 3DGS ``train.py``):
 1. position learning rate for this iteration; SH degree + 1 every ``sh_increase_every``;
 2. pick the next view of a shuffled stack (refilled when empty);
 3. render, clamp the colour to [0, 1], base loss ``(1 - w) L1 + w (1 - SSIM)`` against the
-   training colour ``s0 / 2`` (outside the object mask replaced by the background colour);
+   training colour ``s0 / 2`` (outside the object mask replaced by the background colour),
+   computed by :func:`polargs_plugin.losses.photometric_loss`, the colour loss the hooks'
+   reflective replacement assumes;
 4. **loss hook**: ``extra, logs = hooks.loss(it, view, render, gaussians)``; ``loss += extra``;
 5. ``backward()``; densification statistics; Adam step;
 6. under ``no_grad``: vanilla density control, then the **densify hook**
@@ -31,7 +33,6 @@ from typing import Any, Protocol
 
 import numpy as np
 import torch
-from kornia.losses import ssim_loss
 from torch import Tensor
 from tqdm import tqdm
 
@@ -43,6 +44,7 @@ from polargs_plugin.backends.reference.model import (
 )
 from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
 from polargs_plugin.io import PolarInputError, atomic_path
+from polargs_plugin.losses import photometric_loss
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
 __all__ = ["TrainConfig", "Trainer", "TrainingHooks", "CHECKPOINT_FORMAT"]
@@ -207,11 +209,9 @@ class Trainer:
         return self._order.pop()
 
     def base_loss(self, image: Tensor, target: Tensor) -> Tensor:
-        """``(1 - w) L1 + w (1 - SSIM)`` (vanilla 3DGS; kornia's ssim_loss is (1 - SSIM) / 2)."""
-        w = self.config.ssim_weight
-        l1 = (image - target).abs().mean()
-        dssim = 2.0 * ssim_loss(image[None], target[None], window_size=11)
-        return (1.0 - w) * l1 + w * dssim
+        """``(1 - w) L1 + w (1 - SSIM)`` over the whole image (vanilla 3DGS), as
+        :func:`polargs_plugin.losses.photometric_loss`, so PolarHooks' replacement cancels it exactly."""
+        return photometric_loss(image, target, ssim_weight=self.config.ssim_weight)
 
     # --------------------------------------------------------------------- training
     def step(self) -> dict[str, float]:

@@ -1,0 +1,117 @@
+"""Does polar-enhanced PatchMatch densification (Dense) help? Dense on vs off on a textureless scene.
+
+Two reference-trainer runs on the same synthetic scene, seed, iterations and PolarHooks settings,
+differing only in ``densify.enabled`` (PC, L_dn and L_scale identical in both; L_n exists only
+with Dense, since its target N_opt is Dense's output). Default scene ``glossy_plane_sphere``: its
+sphere is textureless (uniform glossy red, shading and highlights only), the case PatchMatch
+densification is meant for, and the weakly textured floor gives PatchMatch something to lock on.
+PatchMatch and the polarimetric filter use the synthetic data's azimuth model
+(``data.synthetic.AZIMUTH_MODEL``, the physical one for an on-sensor polarizer grid).
+
+Printed per run: Chamfer distance (accuracy, completeness, mean; scene units) of the TSDF mesh of
+the rendered depths (``mesh.tsdf_fuse``, synthetic preset) against the GT mesh; normal MAE
+(degrees) of the rendered normals against the GT normal maps inside the masks; training PSNR;
+final Gaussians; Gaussians appended by Dense; pixels with an N_opt target (sum over views, end of
+training) and the densifier's per-call counts; training seconds. Also the load average
+(``uptime``): the machine is shared, wall times are inflated by contention.
+
+Usage (a few minutes on 2 cores):
+python bench/dense_effect.py [--scene glossy_plane_sphere] [--views 12] [--size 64] [--factor 0.02] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import time
+
+import torch
+
+from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+from polargs_plugin.config import PolarConfig
+from polargs_plugin.data.synthetic import AZIMUTH_MODEL, generate_scene
+from polargs_plugin.hooks import PolarHooks
+from polargs_plugin.mesh import mesh_settings, tsdf_fuse
+from polargs_plugin.metrics import chamfer_distance, normal_mae
+
+
+def load() -> str:
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "load average %.2f, %.2f, %.2f" % os.getloadavg()
+
+
+def run(scene, dense: bool, factor: float, seed: int) -> dict[str, float]:
+    polar = PolarConfig.cpu_demo(factor)
+    polar.densify.enabled = dense
+    polar.densify.patchmatch.azimuth_model = AZIMUTH_MODEL
+    polar.densify.filters.azimuth_model = AZIMUTH_MODEL
+    hooks = PolarHooks(polar)
+    trainer = Trainer(scene.views, TrainConfig.cpu(factor, progress=False, seed=seed), hooks=hooks)
+    appended, l_n = 0, []
+    start = time.perf_counter()
+    while trainer.iteration < trainer.config.iterations:
+        logs = trainer.step()
+        appended += int(logs.get("appended", 0))
+        if "l_n" in logs:
+            l_n.append(logs["l_n"])
+    seconds = time.perf_counter() - start
+    with torch.no_grad():
+        renders = [trainer.render(view) for view in trainer.views]
+    views = scene.views
+    normals = [torch.nn.functional.normalize(r.normal.cpu(), dim=0) for r in renders]
+    mesh = tsdf_fuse(
+        [r.depth.cpu() for r in renders], [r.color.cpu() for r in renders], [v.K for v in views],
+        [v.world_to_camera for v in views], masks=[v.mask for v in views], **mesh_settings("synthetic"),
+    )
+    cd = chamfer_distance(mesh, (scene.mesh_vertices, scene.mesh_triangles), num_samples=200_000)
+    targets = [hooks.normal_target(v.name) for v in views]
+    densifier = hooks._densifier
+    return {
+        "accuracy": float(cd["accuracy"]),
+        "completeness": float(cd["completeness"]),
+        "chamfer": float(cd["chamfer"]),
+        "normal_mae": normal_mae(normals, [v.normal_gt for v in views], [v.mask for v in views]),
+        "psnr": trainer.evaluate(),
+        "gaussians": trainer.model.num,
+        "dense_added": appended,
+        "nopt_pixels": sum(int(t[1].sum()) for t in targets if t is not None),
+        "l_n_nonzero": sum(v > 0 for v in l_n),
+        "seconds": seconds,
+        "stats": dict(densifier.stats) if densifier is not None else {},
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="glossy_plane_sphere")
+    parser.add_argument("--views", type=int, default=12)
+    parser.add_argument("--size", type=int, default=64)
+    parser.add_argument("--factor", type=float, default=0.02, help="schedule factor (0.02 = 600 iterations)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    demo = PolarConfig.cpu_demo(args.factor).densify
+    print(f"{load()}\nscene {args.scene}: {args.views} views {args.size}x{args.size}, "
+          f"{round(30_000 * args.factor)} iterations, Dense every {demo.interval} from {demo.start_iter} "
+          f"to {demo.end_iter}, azimuth model {AZIMUTH_MODEL}, seed {args.seed}, {args.threads} threads")
+    scene = generate_scene(args.scene, num_views=args.views, width=args.size, height=args.size)
+    results = {name: run(scene, on, args.factor, args.seed) for name, on in (("Dense off", False), ("Dense on", True))}
+    keys = ("accuracy", "completeness", "chamfer", "normal_mae", "psnr", "gaussians", "dense_added",
+            "nopt_pixels", "l_n_nonzero", "seconds")
+    print(f"{'':10s}" + "".join(f"{k:>13s}" for k in keys))
+    for name, res in results.items():
+        print(f"{name:10s}" + "".join(f"{res[k]:13.4f}" if isinstance(res[k], float) else f"{res[k]:13d}" for k in keys))
+    off, on = results["Dense off"], results["Dense on"]
+    print(f"densifier per-call totals: {on['stats']}")
+    print(f"Dense on / off: Chamfer x{on['chamfer'] / off['chamfer']:.3f} (accuracy x{on['accuracy'] / off['accuracy']:.3f}, "
+          f"completeness x{on['completeness'] / off['completeness']:.3f}), normal MAE x{on['normal_mae'] / off['normal_mae']:.3f}, "
+          f"time x{on['seconds'] / off['seconds']:.2f}")
+    print(load())
+
+
+if __name__ == "__main__":
+    main()
