@@ -2,11 +2,14 @@
 
 Two reference-trainer runs on the same synthetic scene, seed, iterations and PolarHooks settings,
 differing only in ``densify.enabled`` (PC, L_dn and L_scale identical in both; L_n exists only
-with Dense, since its target N_opt is Dense's output). Default scene ``glossy_plane_sphere``: its
+with Dense, since its target N_opt is Dense's output). A third run, "seeds only", is Dense on with
+L_n off, separating Dense's two outputs: the seeded Gaussians and the N_opt targets of L_n. Default scene ``glossy_plane_sphere``: its
 sphere is textureless (uniform glossy red, shading and highlights only), the case PatchMatch
 densification is meant for, and the weakly textured floor gives PatchMatch something to lock on.
 PatchMatch and the polarimetric filter use the synthetic data's azimuth model
-(``data.synthetic.AZIMUTH_MODEL``, the physical one for an on-sensor polarizer grid).
+(``data.synthetic.AZIMUTH_MODEL``, the physical one for an on-sensor polarizer grid), which is
+the synthetic preset's (``PolarConfig.synthetic``, checked here). L_n stops
+``losses.normal_until_after_dense`` iterations after the Dense window (the preset's value).
 
 Printed per run: Chamfer distance (accuracy, completeness, mean; scene units) of the TSDF mesh of
 the rendered depths (``mesh.tsdf_fuse``, synthetic preset) against the GT mesh; normal MAE
@@ -17,6 +20,7 @@ training) and the densifier's per-call counts; training seconds. Also the load a
 
 Usage (a few minutes on 2 cores):
 python bench/dense_effect.py [--scene glossy_plane_sphere] [--views 12] [--size 64] [--factor 0.02] [--threads 2]
+    [--ln-after-dense preset|none|N]
 """
 
 from __future__ import annotations
@@ -43,11 +47,15 @@ def load() -> str:
         return "load average %.2f, %.2f, %.2f" % os.getloadavg()
 
 
-def run(scene, dense: bool, factor: float, seed: int) -> dict[str, float]:
+def run(scene, dense: bool, factor: float, seed: int, normal_loss: bool = True,
+        ln_after_dense: str = "preset") -> dict[str, float]:
     polar = PolarConfig.cpu_demo(factor)
+    if ln_after_dense != "preset":
+        polar.losses.normal_until_after_dense = None if ln_after_dense == "none" else int(ln_after_dense)
     polar.densify.enabled = dense
-    polar.densify.patchmatch.azimuth_model = AZIMUTH_MODEL
-    polar.densify.filters.azimuth_model = AZIMUTH_MODEL
+    polar.losses.use_normal = normal_loss
+    if {polar.densify.patchmatch.azimuth_model, polar.densify.filters.azimuth_model} != {AZIMUTH_MODEL}:
+        raise SystemExit(f"the preset's azimuth model is not the synthetic data's ({AZIMUTH_MODEL})")
     hooks = PolarHooks(polar)
     trainer = Trainer(scene.views, TrainConfig.cpu(factor, progress=False, seed=seed), hooks=hooks)
     appended, l_n = 0, []
@@ -92,24 +100,34 @@ def main() -> None:
     parser.add_argument("--factor", type=float, default=0.02, help="schedule factor (0.02 = 600 iterations)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--ln-after-dense", default="preset",
+                        help="losses.normal_until_after_dense: 'preset', 'none' (L_n to the end) or iterations")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    demo = PolarConfig.cpu_demo(args.factor).densify
+    demo = PolarConfig.cpu_demo(args.factor)
+    if args.ln_after_dense != "preset":
+        demo.losses.normal_until_after_dense = None if args.ln_after_dense == "none" else int(args.ln_after_dense)
+    d, until = demo.densify, demo.losses.normal_until_after_dense
     print(f"{load()}\nscene {args.scene}: {args.views} views {args.size}x{args.size}, "
-          f"{round(30_000 * args.factor)} iterations, Dense every {demo.interval} from {demo.start_iter} "
-          f"to {demo.end_iter}, azimuth model {AZIMUTH_MODEL}, seed {args.seed}, {args.threads} threads")
+          f"{round(30_000 * args.factor)} iterations, Dense every {d.interval} from {d.start_iter} "
+          f"to {d.end_iter}, L_n until {'the end' if until is None else d.end_iter + until}, "
+          f"azimuth model {AZIMUTH_MODEL}, seed {args.seed}, {args.threads} threads")
     scene = generate_scene(args.scene, num_views=args.views, width=args.size, height=args.size)
-    results = {name: run(scene, on, args.factor, args.seed) for name, on in (("Dense off", False), ("Dense on", True))}
+    runs = (("Dense off", False, True), ("Dense on", True, True), ("seeds only", True, False))
+    results = {name: run(scene, on, args.factor, args.seed, l_n, args.ln_after_dense) for name, on, l_n in runs}
     keys = ("accuracy", "completeness", "chamfer", "normal_mae", "psnr", "gaussians", "dense_added",
             "nopt_pixels", "l_n_nonzero", "seconds")
-    print(f"{'':10s}" + "".join(f"{k:>13s}" for k in keys))
+    print(f"{'':11s}" + "".join(f"{k:>13s}" for k in keys))
     for name, res in results.items():
-        print(f"{name:10s}" + "".join(f"{res[k]:13.4f}" if isinstance(res[k], float) else f"{res[k]:13d}" for k in keys))
+        print(f"{name:11s}" + "".join(f"{res[k]:13.4f}" if isinstance(res[k], float) else f"{res[k]:13d}" for k in keys))
     off, on = results["Dense off"], results["Dense on"]
-    print(f"densifier per-call totals: {on['stats']}")
+    seeds = results["seeds only"]
+    print(f"densifier totals over all calls (pixels; added = Gaussians): {on['stats']}")
     print(f"Dense on / off: Chamfer x{on['chamfer'] / off['chamfer']:.3f} (accuracy x{on['accuracy'] / off['accuracy']:.3f}, "
           f"completeness x{on['completeness'] / off['completeness']:.3f}), normal MAE x{on['normal_mae'] / off['normal_mae']:.3f}, "
           f"time x{on['seconds'] / off['seconds']:.2f}")
+    print(f"seeds only / off: Chamfer x{seeds['chamfer'] / off['chamfer']:.3f}, "
+          f"normal MAE x{seeds['normal_mae'] / off['normal_mae']:.3f}")
     print(load())
 
 

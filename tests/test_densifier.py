@@ -15,10 +15,12 @@ HOLE = (slice(None), slice(14, 26), slice(14, 26))
 def _setup():
     views, renders = make_scene("plane", size=40, num_sources=4)
     by_name = {v.name: r for v, r in zip(views, renders)}
+    cfg = PolarConfig.cpu_demo()
+    model = cfg.densify.patchmatch.azimuth_model  # the maps follow the model the densifier inverts
     maps = {}
     for v, (img, depth, normal, mask) in zip(views, renders):
-        maps[v.name] = PolarMaps(aolp=aolp_from_normals(normal), dolp=dolp_diffuse(zenith_from_normals(normal)),
-                                 intensity=img)
+        maps[v.name] = PolarMaps(aolp=aolp_from_normals(normal, K=v.K, model=model),
+                                 dolp=dolp_diffuse(zenith_from_normals(normal, K=v.K, model=model)), intensity=img)
 
     def render_fn(view):
         img, depth, normal, mask = by_name[view.name]
@@ -30,10 +32,17 @@ def _setup():
             normal[(slice(None),) + HOLE[1:]] = 0.0
         return RenderOut(color=img, depth=depth, normal=normal, alpha=alpha)
 
-    cfg = PolarConfig.cpu_demo()
     cfg.densify.patchmatch.iterations = 3
     cfg.densify.stride = 2
     return views, renders, maps, render_fn, cfg
+
+
+def test_synthetic_preset_inverts_the_bundled_data_azimuth_model():
+    from polargs_plugin.data.synthetic import AZIMUTH_MODEL
+
+    for cfg in (PolarConfig.synthetic(), PolarConfig.cpu_demo()):
+        assert cfg.densify.patchmatch.azimuth_model == AZIMUTH_MODEL
+        assert cfg.densify.filters.azimuth_model == AZIMUTH_MODEL
 
 
 def test_schedule_follows_config():

@@ -187,11 +187,18 @@ def test_densify_delegation_normal_loss_and_state(monkeypatch):
     hooks.densify(1000, view, lambda v: _render(), _gaussians())
     render = _render()
     extra, logs = hooks.loss(1001, view, render, _gaussians())
-    # L_n = mean |N/|N| - (0, 0, -1)|_1, weighted by alpha_normal.
+    # L_n = mean |N/|N| - (0, 0, -1)|_1 (all pixels valid here), weighted by alpha_normal.
     unit = render.normal / render.normal.norm(dim=0, keepdim=True)
     expected = (unit - torch.tensor([0.0, 0, -1])[:, None, None]).abs().sum(0).mean().detach()
     assert abs(logs["l_n"] - float(expected)) < 1e-5
     assert torch.allclose(extra, cfg.losses.alpha_normal * expected, atol=1e-6)
+    # The targets are refreshed only inside the Dense window: L_n stops once it has ended by
+    # normal_until_after_dense iterations (None keeps it to the end).
+    last = cfg.densify.end_iter + cfg.losses.normal_until_after_dense
+    assert "l_n" in hooks.loss(last, view, render, _gaussians())[1]
+    assert "l_n" not in hooks.loss(last + 1, view, render, _gaussians())[1]
+    cfg.losses.normal_until_after_dense = None
+    assert "l_n" in hooks.loss(last + 1, view, render, _gaussians())[1]
 
     state = hooks.state_dict()
     assert state == {"densifier": {"calls": 1}}

@@ -107,6 +107,23 @@ def test_gradients_match_finite_differences():
     assert torch.autograd.gradcheck(scale_loss, (scales,))
 
 
+def test_normal_loss_hand_case_divides_by_view_pixels():
+    # Rendered normals alpha-weighted: 0.5 * (0, 0, -1) is (0, 0, -1) once made unit.
+    normal = torch.zeros(3, 4, 5, dtype=torch.float64)
+    normal[2] = -0.5
+    target = torch.zeros_like(normal)
+    target[2] = -1.0
+    target[:, 1, 2] = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)  # |(0,0,-1) - (1,0,0)|_1 = 2
+    target[:, 3, 4] = torch.tensor([0.0, -0.6, -0.8], dtype=torch.float64)  # 0.6 + 0.2 = 0.8
+    valid = torch.zeros(1, 4, 5, dtype=torch.bool)
+    valid[0, 1, 2] = valid[0, 3, 4] = valid[0, 0, 0] = True
+    assert math.isclose(float(normal_loss(normal, target, valid)), (2.0 + 0.8 + 0.0) / 20, rel_tol=1e-12)
+    # A pixel's weight does not depend on how many others have a target.
+    valid[0, 0, 0] = False
+    assert math.isclose(float(normal_loss(normal, target, valid)), 2.8 / 20, rel_tol=1e-12)
+    assert float(normal_loss(normal, target, torch.zeros_like(valid))) == 0.0
+
+
 def test_scale_loss_hand_case():
     scales = torch.tensor([[0.3, 0.1, 0.2], [0.05, 0.5, 0.4]])
     assert math.isclose(float(scale_loss(scales)), (0.1 + 0.05) / 2, rel_tol=1e-6)

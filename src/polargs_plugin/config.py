@@ -55,6 +55,9 @@ class LossConfig:
     gamma_scale: float = 50.0
     ssim_weight: float = 0.2
     depth_normal_from_iter: int = 7000
+    # docs/patchmatch.md "Effect": N_opt is refreshed only inside the Dense window, so L_n stops
+    # this many iterations after densify.end_iter (one Dense interval); None = to the end.
+    normal_until_after_dense: int | None = 100
     use_ref: bool = True
     use_normal: bool = True
     use_depth_normal: bool = True
@@ -131,10 +134,18 @@ class PolarConfig:
 
     @classmethod
     def synthetic(cls) -> "PolarConfig":
-        """Paper values for synthetic data: lambda1 = 0.02, alpha = 0.2."""
+        """Paper values for synthetic data: lambda1 = 0.02, alpha = 0.2; azimuth model "perspective".
+
+        The azimuth model is a preset choice (docs/patchmatch.md "Effect"): the field
+        default stays DESIGN.md's orthographic AoLP contract, while synthetic data rendered by a
+        physical polarization renderer, the bundled scenes included (``data.synthetic``), follow
+        the perspective phase-angle model of an on-sensor polarizer.
+        """
         cfg = cls()
         cfg.densify.patchmatch.lambda_aolp = 0.02
         cfg.losses.alpha_normal = 0.2
+        cfg.densify.patchmatch.azimuth_model = "perspective"
+        cfg.densify.filters.azimuth_model = "perspective"
         return cfg
 
     @classmethod
@@ -154,6 +165,8 @@ class PolarConfig:
         d.end_iter = int(d.end_iter * factor)
         d.interval = max(1, int(d.interval * factor))
         cfg.losses.depth_normal_from_iter = int(cfg.losses.depth_normal_from_iter * factor)
+        if cfg.losses.normal_until_after_dense is not None:
+            cfg.losses.normal_until_after_dense = max(1, int(cfg.losses.normal_until_after_dense * factor))
         return cfg
 
     def to_dict(self) -> dict[str, Any]:

@@ -180,7 +180,9 @@ class PolarHooks:
         background composited outside ``view.mask``), gets the replacement up to that difference
         inside the SSIM windows of reflective pixels (the L1 part stays exact).
 
-        Other terms: ``alpha * L_n`` once the densifier holds a PatchMatch normal for this view;
+        Other terms: ``alpha * L_n`` once the densifier holds a PatchMatch normal for this view,
+        until ``losses.normal_until_after_dense`` iterations past the Dense window (after it the
+        targets are no longer refreshed and go stale while the model improves);
         ``beta * L_dn`` from ``config.losses.depth_normal_from_iter`` on; ``gamma * L_scale``.
         Only the terms switched on at this iteration are computed, from per-view constants built
         at :meth:`preprocess`; nothing here waits for the device (the logs stay tensors).
@@ -205,7 +207,7 @@ class PolarHooks:
                 pc, l_s, l_o, plain = targets(color, cfg.lambda_ref, cfg.ssim_weight)
                 terms.append(pc)
                 logs.update(l_s=l_s.detach(), l_o=l_o.detach(), l_plain_reflective=plain.detach())
-        if cfg.use_normal:
+        if cfg.use_normal and self._normal_targets_fresh(iteration):
             target = self.normal_target(view.name)
             if target is not None:
                 normal, valid = (t.to(color.device) for t in target)
@@ -271,6 +273,10 @@ class PolarHooks:
             kwargs.setdefault("aolps", [self.maps[view.name].aolp for view in views])
             kwargs.setdefault("dolps", [self.maps[view.name].dolp for view in views])
         return consistency_filter(depths, normals, views, **kwargs)
+
+    def _normal_targets_fresh(self, iteration: int) -> bool:
+        after = self.config.losses.normal_until_after_dense
+        return after is None or iteration <= self.config.densify.end_iter + after
 
     def normal_target(self, view_name: str) -> tuple[Tensor, Tensor] | None:
         """The latest PatchMatch normal of a view, ``(normal (3, H, W), valid (1, H, W) bool)``,

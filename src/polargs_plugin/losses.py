@@ -312,8 +312,14 @@ def reflective_replacement(
 
 
 def normal_loss(normal: Tensor, target: Tensor, valid: Tensor) -> Tensor:
-    r""":math:`L_n = \mathrm{mean}_{valid} \lVert \hat N - N_{opt} \rVert_1` with :math:`\hat N` the
+    r""":math:`L_n = \frac{1}{HW} \sum_{valid} \lVert \hat N - N_{opt} \rVert_1` with :math:`\hat N` the
     rendered normal made unit length (the rendered one is alpha-weighted, not unit).
+
+    The sum over the valid pixels is divided by the number of pixels of the view, not by the
+    number of valid ones, as for a dense normal prior whose invalid pixels weigh 0 (and as the
+    masked colour losses here): each target pixel has the weight ``alpha / (H W)`` however few
+    pixels PatchMatch kept, so a sparse target set (often the least reliable one) does not get
+    the full weight ``alpha`` on a few pixels.
 
     Args:
         normal: :math:`(3, H, W)` rendered camera-frame normal.
@@ -323,9 +329,8 @@ def normal_loss(normal: Tensor, target: Tensor, valid: Tensor) -> Tensor:
     Returns:
         Scalar, 0 where no pixel is valid.
     """
-    weight = valid.to(normal.dtype)
     per_pixel = (safe_normalize(normal, dim=0) - target).abs().sum(dim=0, keepdim=True)
-    return (per_pixel * weight).sum() / weight.sum().clamp_min(1.0)
+    return (per_pixel * valid.to(normal.dtype)).sum() / valid[0].numel()
 
 
 def depth_to_points(depth: Tensor, K: Tensor) -> Tensor:
