@@ -25,6 +25,8 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
+from polargs_plugin.data.cameras import look_at
+
 __all__ = [
     "Texture",
     "Material",
@@ -276,23 +278,6 @@ def evaluate_albedo(points: np.ndarray, material: Material) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------
 # Cameras (OpenCV frame, world_to_camera 4x4).
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """(4, 4) float64 world_to_camera of a camera at ``eye`` looking at ``target``, no roll.
-
-    OpenCV frame: z forward, x right, y down (the world ``up`` appears upwards in the image).
-    """
-    forward = np.asarray(target, float) - np.asarray(eye, float)
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, np.asarray(up, float))
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])
-    w2c = np.eye(4)
-    w2c[:3, :3] = rotation
-    w2c[:3, 3] = -rotation @ np.asarray(eye, float)
-    return w2c
 
 
 def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
