@@ -153,6 +153,7 @@ class RecordingHooks:
         return ["maps"] * len(views)
 
     def loss(self, iteration, view, render, gaussians):
+        self.last_loss_render = render
         model = self.trainer_ref[0].model
         before_backward = model.means.grad is None
         self.events.append(("loss", iteration, before_backward, torch.is_grad_enabled(), gaussians.num))
@@ -160,11 +161,16 @@ class RecordingHooks:
         extra = self.extra + 0.0 * gaussians.scales.sum() + 0.0 * render.color.sum()
         return extra, {"fake": 1.0}
 
-    def densify(self, iteration, view, render_fn, gaussians):
+    def densify(self, iteration, view, render_fn, gaussians, render=None):
         model = self.trainer_ref[0].model
         adam_step = int(model.optimizer.state[model.means]["step"])
         out = render_fn(view)
-        self.events.append(("densify", iteration, adam_step, torch.is_grad_enabled(), tuple(out.color.shape)))
+        # the caller's render of this view from this iteration, without its autograd graph
+        same_render = torch.equal(render.depth, self.last_loss_render.depth.detach())
+        self.events.append(
+            ("densify", iteration, adam_step, torch.is_grad_enabled(), tuple(out.color.shape),
+             same_render and not render.color.requires_grad)
+        )
         if iteration != self.append_at:
             return None
         return NewGaussians(
@@ -201,7 +207,7 @@ def test_hooks_called_in_order_at_the_right_points(views, tmp_path):
         loss_ev, dens_ev = hooks.events[2 * it - 1], hooks.events[2 * it]
         assert loss_ev[1] == it and loss_ev[2] and loss_ev[3]  # before backward, with autograd
         assert dens_ev[1] == it and dens_ev[2] == it and not dens_ev[3]  # after the step, no_grad
-        assert dens_ev[4] == (3, SIZE, SIZE)
+        assert dens_ev[4] == (3, SIZE, SIZE) and dens_ev[5]
         assert loss_ev[4] == n0 + (2 if it > 3 else 0)  # the appended Gaussians are trained on
     assert trainer.model.num == n0 + 2 and logs[2]["appended"] == 2.0
     # the zero-gradient extra term is added to the loss but changes nothing else

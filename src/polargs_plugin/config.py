@@ -177,6 +177,11 @@ class PolarConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``KeyError`` naming the key."""
         return _fill(cls(), data, "config")
 
+    def update(self, data: dict[str, Any]) -> "PolarConfig":
+        """Set the fields named in a (nested, partial) dict, e.g. ``{"losses": {"alpha_normal": 0.1}}``,
+        on this config (a preset, say); unknown keys raise ``KeyError`` naming the key. Returns self."""
+        return _fill(self, data, "config")
+
 
 def _fill(obj: Any, data: dict[str, Any], where: str) -> Any:
     known = {f.name for f in fields(obj)}

@@ -88,12 +88,16 @@ class PolarHooks:
     """PolarGS as trainer hooks: preprocessing, extra losses, densification, state.
 
     Args:
-        config: all settings (default: the paper's synthetic preset). ``config.cache_dir`` set
-            means preprocess caches its maps there, keyed by :func:`maps_cache_key`.
+        config: all settings (default: :meth:`PolarConfig.synthetic`, the paper's synthetic
+            preset). ``config.cache_dir`` set means preprocess caches its maps there, keyed by
+            :func:`maps_cache_key`.
+
+    Iterations are 1-based (the first optimisation step is iteration 1), as everywhere in
+    :class:`polargs_plugin.types.TrainingHooks`.
     """
 
     def __init__(self, config: PolarConfig | None = None) -> None:
-        self.config = config or PolarConfig()
+        self.config = config if config is not None else PolarConfig.synthetic()
         self.maps: dict[str, PolarMaps] = {}
         self._densifier: Any = None
         self._pending_state: dict[str, Any] | None = None
@@ -188,7 +192,7 @@ class PolarHooks:
         at :meth:`preprocess`; nothing here waits for the device (the logs stay tensors).
 
         Args:
-            iteration: the trainer's iteration (0-based).
+            iteration: the trainer's iteration (1-based: the first step is 1).
             view: the rendered view (preprocessed).
             render: the render of ``view``.
             gaussians: the current Gaussians (activated, autograd-connected).
@@ -225,6 +229,16 @@ class PolarHooks:
         extra = sum(terms[1:], terms[0]) if terms else color.new_zeros(())
         return extra, logs
 
+    def geometry_needed(self, iteration: int, view_name: str) -> bool:
+        """Whether :meth:`loss` reads the render's depth, normal or alpha at this iteration for
+        this view (L_n with a fresh PatchMatch target, or L_dn). An adapter whose trainer renders
+        those maps in an extra pass can skip the pass when this is False: :meth:`loss` then reads
+        only ``render.color``."""
+        cfg = self.config.losses
+        if cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter:
+            return True
+        return cfg.use_normal and self._normal_targets_fresh(iteration) and self.normal_target(view_name) is not None
+
     # -------------------------------------------------------------------------------- densify
     def densify(
         self,
@@ -232,14 +246,19 @@ class PolarHooks:
         view: View,
         render_fn: Callable[[View], RenderOut],
         gaussians: GaussianState,
+        render: RenderOut | None = None,
     ) -> NewGaussians | None:
         """Polar-enhanced densification (module Dense) after the optimizer step, under no_grad.
 
         Args:
-            iteration: the trainer's iteration.
+            iteration: the trainer's iteration (1-based).
             view: the current view.
-            render_fn: renders any view (reference and sources) with the current Gaussians.
+            render_fn: renders any view (the sources, and the reference when ``render`` is None)
+                with the current Gaussians.
             gaussians: the current Gaussians.
+            render: the caller's render of ``view`` from this iteration (depth, normal, alpha are
+                read; detached or not), so the reference is not rendered again. It predates the
+                optimizer step by one step, which PatchMatch's initialisation does not notice.
 
         Returns:
             Gaussians to append, or ``None`` (off schedule, Dense disabled, nothing survived).
@@ -247,7 +266,7 @@ class PolarHooks:
         if self._densifier is None:
             return None
         with torch.no_grad():
-            return self._densifier(iteration, view, render_fn, gaussians)
+            return self._densifier(iteration, view, render_fn, gaussians, render=render)
 
     def consistency_filter(
         self, depths: Sequence[Tensor], normals: Sequence[Tensor] | None, views: Sequence[View], **kwargs: Any

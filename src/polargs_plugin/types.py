@@ -16,11 +16,12 @@ Conventions, binding everywhere:
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
-__all__ = ["View", "PolarMaps", "RenderOut", "GaussianState", "NewGaussians"]
+__all__ = ["View", "PolarMaps", "RenderOut", "GaussianState", "NewGaussians", "TrainingHooks", "RenderFn"]
 
 
 @dataclass
@@ -176,3 +177,50 @@ class NewGaussians:
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
+
+
+RenderFn = Callable[[View], RenderOut]
+"""Renders any training view with the trainer's current Gaussians."""
+
+
+@runtime_checkable
+class TrainingHooks(Protocol):
+    """What a trainer calls on its hooks object (``polargs_plugin.PolarHooks`` implements it).
+
+    Iterations are 1-based everywhere in this protocol, as in vanilla 3DGS's ``train.py``: the
+    first optimisation step is iteration 1, and every schedule (Dense window, the L_dn start)
+    compares against that number. A trainer that counts from 0 (gsplat's ``step``) passes
+    ``step + 1``.
+
+    Per iteration, in this order: render; the trainer's own loss; :meth:`loss` (added before
+    ``backward``); ``backward``; optimizer step; the trainer's own density control; then, under
+    ``no_grad``, :meth:`densify`, whose Gaussians the trainer appends with their optimizer state.
+    """
+
+    def preprocess(self, views: list[View]) -> Any:
+        """Once, before the first iteration, with every training view."""
+        ...
+
+    def loss(self, iteration: int, view: View, render: RenderOut, gaussians: GaussianState) -> tuple[Tensor, dict]:
+        """``(extra loss to add before backward, logs)`` for ``view`` rendered as ``render``."""
+        ...
+
+    def densify(
+        self,
+        iteration: int,
+        view: View,
+        render_fn: RenderFn,
+        gaussians: GaussianState,
+        render: RenderOut | None = None,
+    ) -> NewGaussians | None:
+        """Gaussians to append after the optimizer step (or ``None``); ``render`` is the caller's
+        render of ``view`` from this iteration, used instead of rendering it again."""
+        ...
+
+    def state_dict(self) -> dict:
+        """What a checkpoint must hold to resume."""
+        ...
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`."""
+        ...

@@ -88,7 +88,12 @@ class PolarDensifier:
         return d.enabled and d.start_iter <= iteration <= d.end_iter and iteration % d.interval == 0
 
     def __call__(
-        self, iteration: int, view: View, render_fn, gaussians: GaussianState | None = None
+        self,
+        iteration: int,
+        view: View,
+        render_fn,
+        gaussians: GaussianState | None = None,
+        render: RenderOut | None = None,
     ) -> NewGaussians | None:
         """Densify from ``view`` if ``iteration`` is scheduled.
 
@@ -97,6 +102,7 @@ class PolarDensifier:
             view: the current training view (must be one of ``views`` by name).
             render_fn: ``render_fn(view) -> RenderOut`` with the current Gaussians.
             gaussians: the current Gaussians (unused by the algorithm; part of the hook API).
+            render: the caller's render of ``view`` (``render_fn(view)`` when None).
 
         Returns:
             NewGaussians to append (world frame), or None when nothing is to be added.
@@ -106,7 +112,7 @@ class PolarDensifier:
         if view.name not in self._index:
             raise KeyError(f"view '{view.name}' is not one of the densifier's views")
         with torch.no_grad():
-            return self._densify(view, render_fn)
+            return self._densify(view, render_fn, render)
 
     def _sources(self, ref: int) -> list[int]:
         if self._center is None:
@@ -118,13 +124,14 @@ class PolarDensifier:
             chosen = [j for j in chosen if self.views[j].stokes.shape[-2:] == size]
         return chosen
 
-    def _densify(self, view: View, render_fn) -> NewGaussians | None:
+    def _densify(self, view: View, render_fn, render: RenderOut | None) -> NewGaussians | None:
         cfg = self.config.densify
         ref = self._index[view.name]
         src = self._sources(ref)
         if not src:
             return None
-        render: RenderOut = render_fn(view)
+        if render is None:
+            render = render_fn(view)
         dev = render.depth.device
         src_views = [self.views[j] for j in src]
         src_renders = [render_fn(v) for v in src_views]

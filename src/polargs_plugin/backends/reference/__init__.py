@@ -1,22 +1,31 @@
 """The bundled reference backend: a differentiable torch rasterizer (with a compiled CPU kernel),
-a minimal vanilla-3DGS Gaussian model with adaptive density control, and its trainer."""
+a minimal vanilla-3DGS Gaussian model with adaptive density control, and its trainer.
 
-from polargs_plugin.backends.reference.model import GaussianModel, init_points_from_masks
-from polargs_plugin.backends.reference.projection import eval_sh, rgb_to_sh, sh_to_rgb
-from polargs_plugin.backends.reference.rasterizer import rasterize, resolve_backend
-from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
-from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+Names are imported on first use, so that importing one module of the backend (the adapter kit
+imports :mod:`.projection`) does not pull in the trainer and its dependencies.
+"""
 
-__all__ = [
-    "rasterize",
-    "resolve_backend",
-    "eval_sh",
-    "rgb_to_sh",
-    "sh_to_rgb",
-    "GaussianModel",
-    "init_points_from_masks",
-    "DensityConfig",
-    "DensityControl",
-    "TrainConfig",
-    "Trainer",
-]
+from importlib import import_module
+from typing import Any
+
+_EXPORTS = {
+    "rasterize": "rasterizer",
+    "resolve_backend": "rasterizer",
+    "eval_sh": "projection",
+    "rgb_to_sh": "projection",
+    "sh_to_rgb": "projection",
+    "GaussianModel": "model",
+    "init_points_from_masks": "model",
+    "DensityConfig": "strategy",
+    "DensityControl": "strategy",
+    "TrainConfig": "trainer",
+    "Trainer": "trainer",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module '{__name__}' has no attribute '{name}'")
+    return getattr(import_module(f"{__name__}.{_EXPORTS[name]}"), name)

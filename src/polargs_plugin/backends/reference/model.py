@@ -30,7 +30,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
-from polargs_plugin.backends.reference.projection import SH_C0, rgb_to_sh, sh_to_rgb
+from polargs_plugin.backends.reference.projection import SH_C0, quat_to_rotmat, rgb_to_sh, sh_to_rgb
+from polargs_plugin.kit.append import edit_rows, logit, pad_rows, raw_from_new
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
 __all__ = [
@@ -94,24 +95,6 @@ def scene_extent(views: list[View]) -> float:
     centres = torch.stack([v.camera_center.double() for v in views])
     radius = float((centres - centres.mean(0)).norm(dim=1).max()) * 1.1
     return radius if radius > 0 else 1.0
-
-
-def _quat_to_rotmat(quats: Tensor) -> Tensor:
-    """(N, 4) wxyz (any norm) to (N, 3, 3) rotation matrices."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
-
-
-def _logit(p: Tensor) -> Tensor:
-    p = p.clamp(1e-6, 1 - 1e-6)
-    return torch.log(p / (1 - p))
 
 
 def _knn_scale(points: Tensor) -> Tensor:
@@ -204,7 +187,7 @@ class GaussianModel(nn.Module):
             "means": points,
             "sh_dc": rgb_to_sh(colors.clamp(0, 1)).unsqueeze(1),
             "sh_rest": torch.zeros(n, (sh_degree + 1) ** 2 - 1, 3, device=points.device),
-            "opacity_logits": _logit(torch.full((n,), float(initial_opacity), device=points.device)),
+            "opacity_logits": logit(torch.full((n,), float(initial_opacity), device=points.device)),
             "log_scales": torch.log(_knn_scale(points)).unsqueeze(1).repeat(1, 3),
             "quats": quats,
         }
@@ -285,6 +268,9 @@ class GaussianModel(nn.Module):
         raise KeyError(name)
 
     # -------------------------------------------------------------------- row edits
+    def _params(self) -> dict[str, nn.Parameter]:
+        return {name: getattr(self, name) for name in PARAM_NAMES}
+
     def _edit_rows(
         self,
         param_fn: Callable[[str, Tensor], Tensor],
@@ -292,25 +278,16 @@ class GaussianModel(nn.Module):
         names: tuple[str, ...] = PARAM_NAMES,
     ) -> None:
         """Replace each named parameter by ``param_fn(name, old)`` and each Adam moment by
-        ``moment_fn(name, old_moment)``; the step counter is kept."""
-        for name in names:
-            group = self._group(name)
-            old = group["params"][0]
-            new = nn.Parameter(param_fn(name, old.detach()).contiguous())
-            state = self.optimizer.state.pop(old, None)
-            if state:
-                for key in ("exp_avg", "exp_avg_sq"):
-                    state[key] = moment_fn(name, state[key]).contiguous()
-                self.optimizer.state[new] = state
-            group["params"][0] = new
-            setattr(self, name, new)
+        ``moment_fn(name, old_moment)``; the step counter is kept (:func:`polargs_plugin.kit.edit_rows`)."""
+        for name, param in edit_rows(self._params(), self.optimizer, param_fn, moment_fn, names).items():
+            setattr(self, name, param)
 
     def extend(self, rows: dict[str, Tensor]) -> None:
         """Append raw rows (keyed by :data:`PARAM_NAMES`) with zero Adam moments."""
         m = rows["means"].shape[0]
         self._edit_rows(
             lambda name, old: torch.cat([old, rows[name].to(old)], dim=0),
-            lambda name, mom: torch.cat([mom, mom.new_zeros((m, *mom.shape[1:]))], dim=0),
+            lambda name, mom: pad_rows(mom, m),
         )
 
     def keep(self, mask: Tensor) -> None:
@@ -321,23 +298,11 @@ class GaussianModel(nn.Module):
 
     def append(self, new: NewGaussians) -> None:
         """Append activated Gaussians (e.g. from ``hooks.densify``); Adam moments zero-padded."""
-        m = len(new)
-        device = self.means.device
-        colors = new.colors.to(device=device, dtype=torch.float32).reshape(m, 3)
-        self.extend(
-            {
-                "means": new.means.to(device=device, dtype=torch.float32).reshape(m, 3),
-                "sh_dc": rgb_to_sh(colors.clamp(0, 1)).unsqueeze(1),
-                "sh_rest": torch.zeros(m, self.sh_rest.shape[1], 3, device=device),
-                "opacity_logits": _logit(new.opacities.to(device=device, dtype=torch.float32).reshape(m)),
-                "log_scales": torch.log(new.scales.to(device=device, dtype=torch.float32).reshape(m, 3).clamp_min(1e-12)),
-                "quats": torch.nn.functional.normalize(new.quats.to(device=device, dtype=torch.float32).reshape(m, 4), dim=-1),
-            }
-        )
+        self.extend(raw_from_new(new, self.sh_rest.shape[1], like=self.means))
 
     def reset_opacity(self, max_opacity: float) -> None:
         """Clamp opacities to at most ``max_opacity`` and zero their Adam moments (vanilla reset)."""
-        cap = _logit(torch.tensor(max_opacity, device=self.means.device))
+        cap = logit(torch.tensor(max_opacity, device=self.means.device))
         self._edit_rows(
             lambda name, old: torch.minimum(old, cap),
             lambda name, mom: torch.zeros_like(mom),
@@ -346,7 +311,7 @@ class GaussianModel(nn.Module):
 
     def rotation_matrices(self) -> Tensor:
         """(N, 3, 3) rotation matrices of the Gaussians (no grad)."""
-        return _quat_to_rotmat(self.quats.detach())
+        return quat_to_rotmat(self.quats.detach())
 
     # ------------------------------------------------------------------ persistence
     def checkpoint(self) -> dict:

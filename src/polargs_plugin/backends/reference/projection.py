@@ -32,6 +32,7 @@ __all__ = [
     "sh_to_rgb",
     "sh_degree_from_coeffs",
     "eval_sh",
+    "shortest_axis_normals",
     "project_gaussians",
 ]
 
@@ -167,6 +168,23 @@ def eval_sh(sh: Tensor, dirs: Tensor) -> Tensor:
     return torch.clamp_min(values + 0.5, 0.0)
 
 
+def shortest_axis_normals(axes_cam: Tensor, scales: Tensor, means_cam: Tensor) -> Tensor:
+    """Camera-frame shortest axis of each Gaussian, flipped to face the camera.
+
+    Args:
+        axes_cam: (N, 3, 3) the Gaussians' axes in the camera frame (column k = axis k).
+        scales: (N, 3) positive scales along those axes.
+        means_cam: (N, 3) camera-frame means.
+
+    Returns:
+        (N, 3) unit normals with ``n . mean_cam <= 0`` (towards the camera centre).
+    """
+    shortest = torch.argmin(scales, dim=-1)
+    normals = torch.gather(axes_cam, 2, shortest[:, None, None].expand(-1, 3, 1))[..., 0]
+    facing = torch.where((normals * means_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(normals)
+    return normals * facing
+
+
 def project_gaussians(
     means: Tensor,
     quats: Tensor,
@@ -247,10 +265,7 @@ def project_gaussians(
         keep = in_range & (log_ratio > 0) & (det > 0)
         extents = torch.where(keep[:, None], extents, torch.zeros_like(extents))
 
-    normal_local = torch.argmin(scales, dim=-1)
-    normals = torch.gather(axes_c, 2, normal_local[:, None, None].expand(-1, 3, 1))[..., 0]
-    facing = torch.where((normals * mean_c).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(normals)
-    normals = normals * facing
+    normals = shortest_axis_normals(axes_c, scales, mean_c)
 
     # Per-pixel depth data: Q = diag(s_min / s) R_c^T K^-1, b = diag(s_min / s) R_c^T mu_c.
     # Dividing by s_min keeps the numbers O(1) for very flat Gaussians; the ratio is unchanged.

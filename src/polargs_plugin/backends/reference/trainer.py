@@ -29,7 +29,7 @@ import random
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
@@ -45,25 +45,11 @@ from polargs_plugin.backends.reference.model import (
 from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
 from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import photometric_loss
-from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
+from polargs_plugin.types import RenderOut, TrainingHooks, View
 
 __all__ = ["TrainConfig", "Trainer", "TrainingHooks", "CHECKPOINT_FORMAT"]
 
 CHECKPOINT_FORMAT = "polargs-reference-checkpoint-v1"
-
-
-class TrainingHooks(Protocol):
-    """What the trainer calls on ``hooks`` (``polargs_plugin.hooks.PolarHooks`` implements it)."""
-
-    def preprocess(self, views: list[View]) -> Any: ...
-
-    def loss(self, iteration: int, view: View, render: RenderOut, gaussians: GaussianState) -> tuple[Tensor, dict]: ...
-
-    def densify(self, iteration: int, view: View, render_fn, gaussians: GaussianState) -> NewGaussians | None: ...
-
-    def state_dict(self) -> dict: ...
-
-    def load_state_dict(self, state: dict) -> None: ...
 
 
 @dataclass
@@ -154,6 +140,7 @@ class Trainer:
         _seed_everything(cfg.seed)
         self.device = torch.device(cfg.device)
         self.views = [v.to(self.device) for v in views]
+        _check_ssim_weight(cfg, hooks)
         self.hooks = hooks
         self.extent = scene_extent(self.views)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
@@ -240,7 +227,7 @@ class Trainer:
         with torch.no_grad():
             refined = self.density.step(model, it)
             if self.hooks is not None:
-                new = self.hooks.densify(it, view, self.render, model.state())
+                new = self.hooks.densify(it, view, self.render, model.state(), render=_detached(render))
                 if new is not None and len(new) > 0:
                     model.append(new)
                     self.density.pad(len(new))
@@ -372,6 +359,27 @@ class Trainer:
         random.setstate(_to_tuple(rng["python"]))
         self._sampler.set_state(rng["sampler"].cpu())
         self._order = [int(i) for i in rng["order"]]
+
+
+def _check_ssim_weight(config: TrainConfig, hooks: TrainingHooks | None) -> None:
+    """PolarHooks' reflective replacement cancels the trainer's colour loss only if both use the
+    same SSIM weight: refuse a mismatch instead of training with a silently wrong L_c."""
+    from polargs_plugin.hooks import PolarHooks
+
+    if isinstance(hooks, PolarHooks) and hooks.config.losses.ssim_weight != config.ssim_weight:
+        raise ValueError(
+            f"TrainConfig.ssim_weight = {config.ssim_weight} but the hooks' PolarConfig.losses.ssim_weight = "
+            f"{hooks.config.losses.ssim_weight}: the PC loss replaces the trainer's colour loss on reflective "
+            "pixels only if both are equal; set one to the other"
+        )
+
+
+def _detached(render: RenderOut) -> RenderOut:
+    """The render without its autograd graph (the densify hook runs after backward)."""
+    return dataclasses.replace(
+        render, **{f.name: getattr(render, f.name).detach() for f in dataclasses.fields(render)
+                   if isinstance(getattr(render, f.name), Tensor)}
+    )
 
 
 def _psnr(mse: float) -> float:
