@@ -1,4 +1,4 @@
-"""Camera conventions: each conversion checked against hand-built geometry (DESIGN.md §3).
+"""Camera conventions: each conversion checked against hand-built geometry (docs/conventions.md).
 
 Truth here is written independently of the code under test: a camera at a known position with
 known axes, and the pixel a known 3D point must land on (pixel centres at +0.5).

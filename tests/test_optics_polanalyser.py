@@ -1,6 +1,6 @@
 """End-to-end agreement with polanalyser (demosaic, Stokes, AoLP, DoLP) on random and real raw frames.
 
-Tolerance notes: our images are float32 (DESIGN.md), polanalyser works in float64 on the integer
+Tolerance notes: our images are float32 (docs/conventions.md), polanalyser works in float64 on the integer
 counts. A float32 count/full-scale value is off by <= 3e-8, so Stokes agree to ~1e-7. AoLP error
 grows like 4e-8 / sqrt(s1^2 + s2^2) and DoLP error like 1e-7 / s0, so the 1e-5 comparison of
 those two is made where polanalyser's polarized magnitude >= 1e-2 (AoLP) and s0 >= 2e-2 (DoLP);

@@ -198,7 +198,7 @@ def test_diffuse_sphere_aolp_radial_and_dolp_fresnel():
     assert sel.sum() > 200
     assert np.abs(dolp - rho_d)[sel].max() < 2e-3
     # PPA: the plane of incidence contains the sphere centre, so diffuse AoLP is exactly radial
-    # around the centre's projection (DESIGN: diffuse AoLP = azimuth, ccw from +x towards up).
+    # around the centre's projection (docs/conventions.md: diffuse AoLP = azimuth, ccw from +x towards up).
     assert wrapped_diff(aolp, radial)[sel].max() < 1e-3
     assert np.allclose(clean.dolp_diffuse[0].numpy()[sel], rho_d[sel], atol=2e-3)
 

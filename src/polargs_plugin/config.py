@@ -1,4 +1,4 @@
-"""PolarConfig: every PolarGS knob with its paper default (DESIGN.md §1).
+"""PolarConfig: every PolarGS knob with its paper default (the PolarGS paper; choices in docs/choices.md).
 
 Thresholds the paper writes in 8-bit units (160..255) are converted here, once, to [0, 1].
 Choices the paper leaves open are documented in docs/choices.md and exposed as fields.
@@ -137,7 +137,7 @@ class PolarConfig:
         """Paper values for synthetic data: lambda1 = 0.02, alpha = 0.2; azimuth model "perspective".
 
         The azimuth model is a preset choice (docs/patchmatch.md "Effect"): the field
-        default stays DESIGN.md's orthographic AoLP contract, while synthetic data rendered by a
+        default stays the orthographic AoLP convention of docs/conventions.md, while synthetic data rendered by a
         physical polarization renderer, the bundled scenes included (``data.synthetic``), follow
         the perspective phase-angle model of an on-sensor polarizer.
         """

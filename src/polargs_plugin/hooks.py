@@ -1,4 +1,4 @@
-"""PolarHooks: the four calls a 3DGS trainer makes to gain PolarGS (DESIGN.md §3).
+"""PolarHooks: the four calls a 3DGS trainer makes to gain PolarGS (docs/conventions.md).
 
 A trainer calls, in this order::
 

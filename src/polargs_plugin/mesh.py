@@ -7,7 +7,7 @@ left by stray Gaussians are discarded).
 
 Pixel centres: open3d's tensor TSDF kernel reads, for a voxel projecting to (u, v), the pixel
 (floor(u), floor(v)); pixel (i, j) thus spans [i, i + 1) x [j, j + 1) with its centre at
-(i + 0.5, j + 0.5), the package's convention (DESIGN.md §3), so ``K`` is passed unchanged.
+(i + 0.5, j + 0.5), the package's convention (docs/conventions.md), so ``K`` is passed unchanged.
 (open3d's legacy ``PinholeCameraIntrinsic`` / ``create_from_depth_image`` put pixel centres at
 integers instead and would need cx - 0.5, cy - 0.5.) tests/test_mesh.py pins this with a tilted
 plane, whose fused surface is biased by half a pixel's depth change if the convention is off.

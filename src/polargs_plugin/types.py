@@ -1,4 +1,4 @@
-"""The data contracts shared by every module (DESIGN.md §3).
+"""The data contracts shared by every module (docs/conventions.md).
 
 Conventions, binding everywhere:
 
@@ -58,7 +58,7 @@ class View:
 
     @property
     def image(self) -> Tensor:
-        """(C, H, W) training colour s0 / 2 (DESIGN.md)."""
+        """(C, H, W) training colour s0 / 2 (docs/conventions.md)."""
         return self.stokes[0] / 2
 
     @property
@@ -91,7 +91,7 @@ class PolarMaps:
     """Per-view maps computed once by ``PolarHooks.preprocess`` (all (.., H, W), float32).
 
     Attributes:
-        aolp: (1, H, W) AoLP in [0, pi) of the channel-mean Stokes, DESIGN.md convention.
+        aolp: (1, H, W) AoLP in [0, pi) of the channel-mean Stokes, docs/conventions.md convention.
         dolp: (1, H, W) DoLP in [0, 1] of the channel-mean Stokes.
         intensity: (C, H, W) training colour s0 / 2.
         specular_mask: (1, H, W) bool, reflective (specular) pixels.

@@ -1,6 +1,6 @@
 """Camera conventions of the supported datasets, converted to and from the project's one.
 
-The project convention (DESIGN.md §3): OpenCV camera frame (x right, y down, z forward),
+The project convention (docs/conventions.md): OpenCV camera frame (x right, y down, z forward),
 ``K`` 3x3 with pixel centres at +0.5 (pixel (u, v) has its centre at (u + 0.5, v + 0.5)), a 4x4
 ``world_to_camera`` (not transposed). Everything here is float64 numpy, (3, 3) / (4, 4) matrices.
 

@@ -11,7 +11,7 @@ Pipeline per view (docs/dataset-format.md describes the model and the files):
    s = 2 c_d [1, rho_d cos 2a, rho_d sin 2a] + 2 c_s [1, -rho_s cos 2a, -rho_s sin 2a],
    rho_d = dolp_diffuse(theta), rho_s = dolp_specular(theta), theta the angle between the normal
    and the direction to the camera, a the perspective-phase-angle (PPA) azimuth of the normal:
-   diffuse AoLP = a, specular AoLP = a + pi/2 (DESIGN.md §3).
+   diffuse AoLP = a, specular AoLP = a + pi/2 (docs/conventions.md).
 4. Sensor: four angle images I(beta) = (s0 + s1 cos 2beta + s2 sin 2beta) / 2, Gaussian noise,
    clipping to [0, 1] (an overexposed pixel clips in every angle and loses its polarization),
    quantisation to ``quantize_bits``; ``View.stokes`` is recomputed from these images.

@@ -13,7 +13,7 @@ Sign conventions (derived here, pinned by tests/test_patchmatch_homography.py):
   ``H = K_s (R - t n^T / d_plane) K_ref^-1`` maps reference pixels to source pixels (COLMAP writes
   the same matrix with ``+`` under its opposite plane-offset sign).
 
-Pixel centres are at ``+0.5`` (DESIGN.md): pixel ``(u, v)`` is ``p~ = (u + 0.5, v + 0.5, 1)``.
+Pixel centres are at ``+0.5`` (docs/conventions.md): pixel ``(u, v)`` is ``p~ = (u + 0.5, v + 0.5, 1)``.
 """
 
 from __future__ import annotations

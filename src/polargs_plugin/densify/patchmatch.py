@@ -1,4 +1,4 @@
-"""Polar-enhanced PatchMatch MVS for one reference view (PolarGS Dense, DESIGN.md §1.2).
+"""Polar-enhanced PatchMatch MVS for one reference view (PolarGS Dense).
 
 Per-pixel state: camera-z depth, unit camera-frame normal (a 3D plane), photometric cost.
 
@@ -17,7 +17,7 @@ Per-pixel state: camera-z depth, unit camera-frame normal (a 3D plane), photomet
 
    - ``S_c``: bilateral NCC (ncc.py) against each source, averaged over the ``top_k_sources``
      best sources.
-   - ``S_a = min_i omega exp(wrap(phi_i - azimuth(n))^2 / tau)`` as DESIGN.md writes it, with
+   - ``S_a = min_i omega exp(wrap(phi_i - azimuth(n))^2 / tau)`` as the paper's cost is usually written (docs/patchmatch.md), with
      ``omega = dolp_weight(rho, sigma)`` and the difference wrapped to (-pi, pi]. It is a
      *penalty* that grows with the angular distance from the nearest of the four AoLP azimuths:
      ``omega`` at agreement, ``omega e^(pi^2 / 16 tau)`` at the worst case (pi/4 from every

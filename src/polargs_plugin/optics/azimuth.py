@@ -1,6 +1,6 @@
 """Normals <-> image-plane azimuth <-> AoLP, the four azimuth candidates and the DoLP weight.
 
-Conventions (DESIGN.md §3, reference/polarization.md §4-5), pinned by tests on a rendered sphere:
+Conventions (docs/conventions.md), pinned by tests on a rendered sphere:
 
 - Normals are unit vectors in the OpenCV camera frame (x right, y down, z forward) facing the
   camera (n . z < 0), laid out channel-first: :math:`(*, 3, H, W)`.
@@ -12,7 +12,7 @@ Conventions (DESIGN.md §3, reference/polarization.md §4-5), pinned by tests on
   the principal point.
 - Diffuse AoLP = alpha + DIFFUSE_AOLP_OFFSET (mod pi), specular AoLP = alpha +
   SPECULAR_AOLP_OFFSET (mod pi).
-- ``K`` is (3, 3) or (*, 3, 3) intrinsics with pixel centres at +0.5 (DESIGN.md §3).
+- ``K`` is (3, 3) or (*, 3, 3) intrinsics with pixel centres at +0.5 (docs/conventions.md).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Linear Stokes vectors from polarizer-angle images, and the quantities derived from them.
 
-Conventions (DESIGN.md §3, reference/polarization.md §2), pinned by tests:
+Conventions (docs/conventions.md), pinned by tests:
 
 - Malus: I(beta) = (s0 + s1 cos 2beta + s2 sin 2beta) / 2, so s0 is the full intensity.
 - Four angles 0/45/90/135 deg: s0 = (I0 + I45 + I90 + I135) / 2, s1 = I0 - I90, s2 = I45 - I135.
