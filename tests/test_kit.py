@@ -282,3 +282,22 @@ def test_trainer_refuses_a_second_ssim_weight() -> None:
     config.losses.ssim_weight = 0.3
     with pytest.raises(ValueError, match="ssim_weight = 0.2 but the hooks' PolarConfig.losses.ssim_weight = 0.3"):
         Trainer([view], TrainConfig.cpu(progress=False), hooks=PolarHooks(config))
+
+
+def test_config_from_env_gates_native_terms_before_the_json_file(tmp_path) -> None:
+    from polargs_plugin.kit.inria import config_from_env
+
+    native = ("use_depth_normal", "use_scale")
+    cfg = config_from_env({}, native_terms=native)
+    assert cfg == PolarConfig.real().update({"losses": {"use_depth_normal": False, "use_scale": False}})
+    kept = config_from_env({"POLARGS_KEEP_NATIVE": "1", "POLARGS_PRESET": "synthetic"}, native_terms=native)
+    assert kept == PolarConfig.synthetic()
+    path = tmp_path / "polar.json"
+    path.write_text('{"losses": {"use_scale": true, "alpha_normal": 0.3}}')
+    cfg = config_from_env({"POLARGS_CONFIG": str(path)}, native_terms=native)
+    assert cfg.losses.use_scale and not cfg.losses.use_depth_normal and cfg.losses.alpha_normal == 0.3
+    path.write_text('{"losses": {"alpha_nromal": 0.3}}')
+    with pytest.raises(ValueError, match="polar.json: cannot use as POLARGS_CONFIG .*unknown setting 'alpha_nromal'"):
+        config_from_env({"POLARGS_CONFIG": str(path)})
+    with pytest.raises(ValueError, match="POLARGS_PRESET='paper': unknown preset"):
+        config_from_env({"POLARGS_PRESET": "paper"})

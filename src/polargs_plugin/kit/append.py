@@ -178,7 +178,8 @@ def append_rows(
         rows: name -> (M, ...) new raw rows (cast to the parameter's device and dtype).
         state: optional per-Gaussian statistics (e.g. gradient accumulators, gsplat strategy
             state); each tensor whose first dimension is N gets M zero rows, in place. ``None``
-            values and other entries are left alone.
+            values and other entries are left alone. Pass per-Gaussian entries only: a matrix
+            whose first dimension happens to equal N (MCMC's ``binoms``) would be padded too.
 
     Returns:
         The new parameters by name (also written into ``params``).

@@ -16,8 +16,11 @@ Patched training loops call three methods (all iterations 1-based, as the loops 
 
 :meth:`InriaAdapter.attach` reads its settings from the environment: :data:`ENV_DATA` (the
 polarimetric dataset folder, any format ``polargs_plugin.data.registry.load_views`` reads;
-required), :data:`ENV_PRESET` (``real`` (default) or ``synthetic``) and :data:`ENV_CONFIG`
-(a JSON file of PolarConfig fields set on that preset).
+required), :data:`ENV_PRESET` (``real`` (default) or ``synthetic``), :data:`ENV_CONFIG`
+(a JSON file of PolarConfig fields set on that preset) and :data:`ENV_KEEP_NATIVE` (``1`` keeps
+the plug-in's copies of loss terms the trainer has natively; they are off by default). The
+preset is built first, the trainer's native terms are switched off, then the JSON file is
+applied, so a term the file switches on explicitly stays on.
 """
 
 from __future__ import annotations
@@ -38,16 +41,18 @@ from polargs_plugin.kit.append import pad_rows, raw_from_new
 from polargs_plugin.kit.cameras import view_from_graphdeco
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
-__all__ = ["ENV_DATA", "ENV_PRESET", "ENV_CONFIG", "config_from_env", "match_views", "InriaAdapter"]
+__all__ = ["ENV_DATA", "ENV_PRESET", "ENV_CONFIG", "ENV_KEEP_NATIVE", "config_from_env", "match_views", "InriaAdapter"]
 
 ENV_DATA = "POLARGS_DATA"
 ENV_PRESET = "POLARGS_PRESET"
 ENV_CONFIG = "POLARGS_CONFIG"
+ENV_KEEP_NATIVE = "POLARGS_KEEP_NATIVE"
 _PRESETS = ("real", "synthetic")
 
 
-def config_from_env(environ: Mapping[str, str] | None = None) -> PolarConfig:
-    """The PolarConfig named by :data:`ENV_PRESET` with the fields of :data:`ENV_CONFIG` set on it.
+def config_from_env(environ: Mapping[str, str] | None = None, native_terms: Sequence[str] = ()) -> PolarConfig:
+    """The PolarConfig named by :data:`ENV_PRESET`, the ``native_terms`` loss switches off (unless
+    :data:`ENV_KEEP_NATIVE` is ``1``), then the fields of :data:`ENV_CONFIG` set on it.
 
     Raises:
         ValueError: unknown preset; PolarInputError: unreadable or invalid config file.
@@ -57,6 +62,9 @@ def config_from_env(environ: Mapping[str, str] | None = None) -> PolarConfig:
     if preset not in _PRESETS:
         raise ValueError(f"{ENV_PRESET}={preset!r}: unknown preset (choose one of {', '.join(_PRESETS)})")
     config = getattr(PolarConfig, preset)()
+    if environ.get(ENV_KEEP_NATIVE, "0") != "1":
+        for switch in native_terms:
+            setattr(config.losses, switch, False)
     path = environ.get(ENV_CONFIG)
     if path:
         try:
@@ -172,15 +180,17 @@ class InriaAdapter:
 
     @classmethod
     def attach(cls, scene: Any, gaussians: Any, pipe: Any, render: Callable[..., dict], **render_kwargs: Any) -> "InriaAdapter":
-        """Build the adapter from the environment (:data:`ENV_DATA`, :data:`ENV_PRESET`, :data:`ENV_CONFIG`)."""
+        """Build the adapter from the environment (:data:`ENV_DATA`, :data:`ENV_PRESET`,
+        :data:`ENV_CONFIG`, :data:`ENV_KEEP_NATIVE`; see the module docstring)."""
         from polargs_plugin.data.registry import load_views
 
         data = os.environ.get(ENV_DATA)
         if not data:
             raise ValueError(f"{ENV_DATA} is not set: point it at the polarimetric dataset folder of this scene")
+        config = config_from_env(native_terms=tuple(cls.native_terms))
         return cls(
             scene, gaussians, pipe, render, load_views(data),
-            config=config_from_env(), render_kwargs=render_kwargs, source=data,
+            config=config, keep_native_terms=True, render_kwargs=render_kwargs, source=data,
         )
 
     # ------------------------------------------------------------------ translation

@@ -1,0 +1,100 @@
+# Test fixture for the patch scripts: a placeholder trainer with the statement shape of the
+# graphdeco-inria/gaussian-splatting 2024 training loop (commit 54c035f: exposure optimizer, sparse
+# Adam, depth regulariser). Written for these tests; nothing here is upstream code.
+
+import os
+import torch
+from random import randint
+from utils.loss_utils import l1_loss, ssim
+from gaussian_renderer import render, network_gui
+import sys
+from scene import Scene, GaussianModel
+from utils.general_utils import get_expon_lr_func
+from argparse import ArgumentParser
+try:
+    from torch.utils.tensorboard import SummaryWriter
+    HAVE_TB = True
+except ImportError:
+    HAVE_TB = False
+
+try:
+    from fused_ssim import fused_ssim
+    FUSED_SSIM_AVAILABLE = True
+except ImportError:
+    FUSED_SSIM_AVAILABLE = False
+
+try:
+    from diff_gaussian_rasterization import SparseGaussianAdam
+    SPARSE_ADAM_AVAILABLE = True
+except ImportError:
+    SPARSE_ADAM_AVAILABLE = False
+
+
+def training(dataset, opt, pipe, testing_iterations, saving_iterations, checkpoint_iterations, checkpoint, debug_from):
+    first_iter = 0
+    gaussians = GaussianModel(dataset.sh_degree, opt.optimizer_type)
+    scene = Scene(dataset, gaussians)
+    gaussians.training_setup(opt)
+    background = torch.zeros(3)
+    use_sparse_adam = opt.optimizer_type == "sparse_adam" and SPARSE_ADAM_AVAILABLE
+    depth_l1_weight = get_expon_lr_func(opt.depth_l1_weight_init, opt.depth_l1_weight_final, max_steps=opt.iterations)
+    viewpoint_stack = scene.getTrainCameras().copy()
+    first_iter += 1
+    for iteration in range(first_iter, opt.iterations + 1):
+        if network_gui.conn is None:
+            network_gui.try_connect()
+        while network_gui.conn is not None:
+            custom_cam = network_gui.receive()
+            if custom_cam is not None:
+                net_image = render(custom_cam, gaussians, pipe, background, scaling_modifier=1.0, use_trained_exp=dataset.train_test_exp, separate_sh=SPARSE_ADAM_AVAILABLE)["render"]
+            break
+
+        gaussians.update_learning_rate(iteration)
+        if not viewpoint_stack:
+            viewpoint_stack = scene.getTrainCameras().copy()
+        viewpoint_cam = viewpoint_stack.pop(randint(0, len(viewpoint_stack) - 1))
+
+        bg = torch.rand(3) if opt.random_background else background
+
+        render_pkg = render(viewpoint_cam, gaussians, pipe, bg, use_trained_exp=dataset.train_test_exp, separate_sh=SPARSE_ADAM_AVAILABLE)
+        image, viewspace_point_tensor, visibility_filter, radii = render_pkg["render"], render_pkg["viewspace_points"], render_pkg["visibility_filter"], render_pkg["radii"]
+
+        gt_image = viewpoint_cam.original_image
+        Ll1 = l1_loss(image, gt_image)
+        ssim_value = fused_ssim(image, gt_image) if FUSED_SSIM_AVAILABLE else ssim(image, gt_image)
+        loss = (1.0 - opt.lambda_dssim) * Ll1 + opt.lambda_dssim * (1.0 - ssim_value)
+
+        if depth_l1_weight(iteration) > 0 and viewpoint_cam.depth_reliable:
+            Ll1depth = depth_l1_weight(iteration) * torch.abs(render_pkg["depth"] - viewpoint_cam.invdepthmap).mean()
+            loss += Ll1depth
+
+        loss.backward()
+
+        with torch.no_grad():
+            if iteration in saving_iterations:
+                scene.save(iteration)
+
+            if iteration < opt.densify_until_iter:
+                gaussians.add_densification_stats(viewspace_point_tensor, visibility_filter)
+                if iteration > opt.densify_from_iter and iteration % opt.densification_interval == 0:
+                    gaussians.densify_and_prune(opt.densify_grad_threshold, 0.005, scene.cameras_extent, None, radii)
+
+            if iteration < opt.iterations:
+                gaussians.exposure_optimizer.step()
+                gaussians.exposure_optimizer.zero_grad(set_to_none = True)
+                if use_sparse_adam:
+                    visible = radii > 0
+                    gaussians.optimizer.step(visible, radii.shape[0])
+                    gaussians.optimizer.zero_grad(set_to_none = True)
+                else:
+                    gaussians.optimizer.step()
+                    gaussians.optimizer.zero_grad(set_to_none = True)
+
+            if (iteration in checkpoint_iterations):
+                torch.save((gaussians.capture(), iteration), scene.model_path + "/chkpnt.pth")
+
+
+if __name__ == "__main__":
+    parser = ArgumentParser()
+    args = parser.parse_args(sys.argv[1:])
+    training(args, args, args, [], [], [], None, -1)
