@@ -199,7 +199,7 @@ def test_clockwise_conversion_is_involution_and_matches_mvas():
     aolp = torch.rand(1000, generator=g, dtype=torch.float64) * math.pi
     twice = aolp_to_clockwise(aolp_to_clockwise(aolp))
     assert float(_circular_diff(twice, aolp).max()) < 1e-12
-    # MVAS: clockwise azimuth with y down, phi = atan2(n_y, n_x) (reference/polarization.md §5).
+    # MVAS: clockwise azimuth with y down, phi = atan2(n_y, n_x) (MVAS's convention).
     n = _random_normals(64, seed=7).reshape(3, 8, 8)
     mvas = torch.remainder(torch.atan2(n[1], n[0]), math.pi)
     assert float(_circular_diff(aolp_to_clockwise(aolp_from_normals(n)[0]), mvas).max()) < 1e-12

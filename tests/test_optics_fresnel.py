@@ -54,7 +54,7 @@ def test_specular_dolp_is_one_at_brewster_and_two_valued():
 
 
 def test_diffuse_dolp_reference_values_and_monotonic():
-    # Values quoted in reference/polarization.md §3 for n = 1.5.
+    # Published values of the diffuse DoLP for n = 1.5 (Atkinson & Hancock 2006, Fig. 3), to 3 %.
     theta = torch.deg2rad(torch.tensor([10.0, 30.0, 60.0, 80.0], dtype=torch.float64))
     expected = torch.tensor([0.0017, 0.017, 0.096, 0.25], dtype=torch.float64)
     torch.testing.assert_close(dolp_diffuse(theta, 1.5), expected, rtol=0.03, atol=2e-4)

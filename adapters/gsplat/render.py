@@ -13,7 +13,7 @@ evaluated first, :func:`sh_colors`)::
     rgb = render_colors[..., :3]
 
 A second call would give the aux channels a ``means2d`` of their own that the strategy does not
-track; one call keeps a single ``info["means2d"]`` (upstream-trainers.md §7). A consequence:
+track; one call keeps a single ``info["means2d"]`` (gsplat's strategies read ``info["means2d"]`` of that call). A consequence:
 gradients of L_n / L_dn reach ``means2d`` and hence DefaultStrategy's ``grad2d`` statistics
 (docs/adapters/gsplat.md, "Differences").
 

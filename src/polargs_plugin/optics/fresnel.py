@@ -4,7 +4,7 @@ All functions are elementwise over a zenith-angle tensor ``theta`` (radians, ang
 surface normal and the viewing direction, cos(theta) = N . V) of any shape ``(*)``; the result
 has the same shape, dtype and device. ``n`` is the refractive index of the dielectric, a float
 or a tensor broadcastable with ``theta``. Formulas: Atkinson & Hancock 2006, Miyazaki 2003
-(see reference/polarization.md §3).
+(Fresnel's equations for a dielectric; e.g. Atkinson and Hancock 2006).
 """
 
 from __future__ import annotations

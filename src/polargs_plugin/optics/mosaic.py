@@ -1,6 +1,6 @@
 """Division-of-focal-plane polarization mosaics (Sony IMX250MZR mono, IMX250MYR colour).
 
-Layout (reference/polarization.md §6), pinned by tests against real sensor frames:
+Layout (the sensor makers' documentation; docs/conventions.md), pinned by tests against real sensor frames:
 
 - Mono (IMX250MZR): each 2x2 super-pixel is (row, column) (0,0) = 90 deg, (0,1) = 45 deg,
   (1,0) = 135 deg, (1,1) = 0 deg.
