@@ -155,7 +155,7 @@ class _FakeDensifier:
         self.calls = 0
         self.normals = {}
 
-    def __call__(self, iteration, view, render_fn, gaussians):
+    def __call__(self, iteration, view, render_fn, gaussians, render=None):
         self.calls += 1
         assert not torch.is_grad_enabled()
         normal = torch.zeros(3, H, W)

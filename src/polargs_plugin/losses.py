@@ -1,10 +1,12 @@
 """PolarGS losses: L = L_c + alpha L_n + beta L_dn + gamma L_scale, L_c = L_non + lambda_ref L_ref.
 
-Photometric terms are (1 - lambda) L1 + lambda (1 - SSIM) per pixel (vanilla 3DGS's colour loss,
-SSIM from kornia, 11x11 Gaussian window, 'same' padding), summed over the masked pixels and
-divided by the image's pixel count H*W. That normalisation makes masked terms add up: the plain
-colour loss over the whole image equals its part on the reflective pixels plus L_non, which is
-what lets :class:`~polargs_plugin.hooks.PolarHooks` swap the target on reflective pixels only.
+Photometric terms are (1 - lambda) L1 + lambda (1 - SSIM) per pixel (vanilla 3DGS's colour loss:
+kornia's SSIM, 11x11 Gaussian window sigma 1.5, 'reflect' same padding, computed by the fused
+:func:`polargs_plugin.ssim.ssim_map`, compiled with a hand-written backward on the CPU), summed
+over the masked pixels and divided by the image's pixel count H*W. That normalisation makes
+masked terms add up: the plain colour loss over the whole image equals its part on the
+reflective pixels plus L_non, which is what lets :class:`~polargs_plugin.hooks.PolarHooks` swap
+the target on reflective pixels only.
 
 Every loss is finite with finite gradients on empty masks, zero opacity, zero intensity and zero
 vectors (no 0/0, no sqrt or normalisation at 0).
@@ -12,9 +14,10 @@ vectors (no 0/0, no sqrt or normalisation at 0).
 
 from __future__ import annotations
 
-import kornia
 import torch
 from torch import Tensor
+
+from polargs_plugin.ssim import gaussian_kernel1d, ssim_from_moments, ssim_map
 
 __all__ = [
     "photometric_loss_map",
@@ -55,11 +58,7 @@ def _loss_maps(pred: Tensor, targets: Tensor, ssim_weight: float) -> Tensor:
         return l1
     # 'same' padding needs H, W > window // 2: shrink the window on tiny images.
     window = min(_SSIM_WINDOW, 2 * min(pred.shape[-2:]) - 1)
-    # SSIM is per channel: the B targets go along channels of one image (kornia is much slower
-    # on a batch than on more channels).
-    count, channels = targets.shape[:2]
-    ssim = kornia.metrics.ssim(pred.repeat(count, 1, 1)[None], targets.reshape(1, -1, *targets.shape[-2:]), window)
-    ssim = ssim.reshape(count, channels, *targets.shape[-2:]).mean(dim=1, keepdim=True)
+    ssim = ssim_map(pred.expand_as(targets), targets, window).mean(dim=1, keepdim=True)
     return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
 
 
@@ -155,33 +154,30 @@ def _reflect(index: Tensor, size: int) -> Tensor:
     return torch.where(index > size - 1, 2 * (size - 1) - index, index)
 
 
-def _ssim_from_moments(mu1: Tensor, sq1: Tensor, mu2: Tensor, sq2: Tensor, cross: Tensor) -> Tensor:
-    """SSIM from windowed means, second moments and cross moment, in kornia's order of operations
-    (max_val 1, eps 1e-12), so that the values match ``kornia.metrics.ssim`` to rounding."""
-    mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    c1, c2 = 0.01**2, 0.03**2
-    num = (2.0 * mu1_mu2 + c1) * (2.0 * (cross - mu1_mu2) + c2)
-    den = (mu1_sq + mu2_sq + c1) * ((sq1 - mu1_sq) + (sq2 - mu2_sq) + c2)
-    return num / (den + 1e-12)
+# SSIM from windowed moments, in kornia's order of operations (kept under its former name).
+_ssim_from_moments = ssim_from_moments
 
 
 class ReflectiveTargets:
     r"""One view's constants of :func:`reflective_replacement`, built once (e.g. at preprocess).
 
-    The SSIM of a prediction against a fixed target needs the target's windowed mean and second
-    moment, which do not change during training: they are computed here, with the reflective
-    pixels and the assembled L_ref target (training colour with I_diff on specular and I_chro on
-    overexposed pixels). A call then filters only the prediction's moments and its products with
-    the two targets (corrected and plain), where the reflective pixels' SSIM windows reach:
+    The reflective pixels, the assembled L_ref target (training colour with I_diff on specular and
+    I_chro on overexposed pixels) and the plain target are fixed during training: they are cut out
+    here where the reflective pixels' SSIM windows reach, and a call computes the prediction's
+    SSIM against the two targets (corrected and plain) there only:
 
-    - *pixels* strategy: gathers the reflect-padded 11x11 window of each reflective pixel
-      (cheapest when highlights are sparse);
-    - *box* strategy: separable Gaussian filtering of the reflective pixels' bounding box grown by
-      the window radius (cheapest for dense highlights, and bounded in memory).
+    - *pixels* strategy: gathers the reflect-padded 11x11 window of each reflective pixel, with
+      the targets' windowed mean and second moment precomputed (cheapest when highlights are
+      sparse); equal to the whole-image values up to float rounding;
+    - *box* strategy: the fused :func:`polargs_plugin.ssim.ssim_map` on the reflective pixels'
+      bounding box grown by the window radius (cheapest for dense highlights, and bounded in
+      memory). The box holds every reflective pixel's whole window (or meets the image border,
+      where the same reflection applies), so the SSIM there is computed by the same operations
+      as on the whole image, and cancels the trainer's colour loss to the last bit.
 
     Both give the whole-image values of :func:`reflective_loss` and :func:`photometric_loss` on
-    the reflective pixels (kornia's SSIM: Gaussian window 11, sigma 1.5, 'reflect' same padding)
-    up to float rounding. A call needs no host-device synchronisation.
+    the reflective pixels (kornia's SSIM: Gaussian window 11, sigma 1.5, 'reflect' same padding).
+    A call needs no host-device synchronisation.
 
     Args:
         image: :math:`(C, H, W)` training colour (the trainer's target).
@@ -206,7 +202,7 @@ class ReflectiveTargets:
         reflective = specular_mask | overexposed_mask
         target = torch.where(specular_mask, i_diff, torch.where(overexposed_mask, i_chro, image))
         targets = torch.stack([target, image])  # (2, C, H, W): corrected, plain
-        self.kernel = kornia.filters.get_gaussian_kernel1d(self.window, 1.5, device=image.device, dtype=image.dtype)
+        self.kernel = gaussian_kernel1d(self.window, device=image.device, dtype=image.dtype)  # (k,)
         box = mask_box(reflective, self.window // 2)
         self.strategy = "empty" if box is None else "box"
         if box is None:
@@ -222,7 +218,7 @@ class ReflectiveTargets:
             win_rows = _reflect(pixels[:, None] // width + offsets, height)  # (P, k)
             win_cols = _reflect(pixels[:, None] % width + offsets, width)
             self.windows = (win_rows[:, :, None] * width + win_cols[:, None, :]).reshape(len(pixels), -1)
-            self.weights = (self.kernel[0, :, None] * self.kernel[0, None, :]).reshape(-1)  # (k*k,)
+            self.weights = (self.kernel[:, None] * self.kernel[None, :]).reshape(-1)  # (k*k,)
             self.pixels = pixels
             flat = targets.reshape(*targets.shape[:2], -1)
             self.targets = flat[:, :, self.windows]  # (2, C, P, k*k)
@@ -230,20 +226,18 @@ class ReflectiveTargets:
             self.specular = specular_mask.reshape(-1)[pixels]
             self.overexposed = overexposed_mask.reshape(-1)[pixels]
             self.reflective = torch.ones_like(self.specular)
+            self.target_mean = self._filter(self.targets)
+            self.target_sq = self._filter(self.targets * self.targets)
         else:
             self.box = box
-            self.targets = self.values = targets[:, :, rows, cols]  # (2, C, h, w)
+            self.targets = self.values = targets[:, :, rows, cols].contiguous()  # (2, C, h, w)
             self.specular = specular_mask[:, rows, cols]
             self.overexposed = overexposed_mask[:, rows, cols]
             self.reflective = reflective[:, rows, cols]
-        self.target_mean = self._filter(self.targets)
-        self.target_sq = self._filter(self.targets * self.targets)
 
     def _filter(self, x: Tensor) -> Tensor:
-        """Gaussian-windowed mean: over the last axis (windows) or over the box (images)."""
-        if self.strategy == "pixels":
-            return x @ self.weights
-        return kornia.filters.filter2d_separable(x, self.kernel, self.kernel, border_type="reflect")
+        """Gaussian-windowed mean over the last axis (the gathered windows, *pixels* strategy)."""
+        return x @ self.weights
 
     def _losses(self, pred: Tensor, ssim_weight: float) -> Tensor:
         """(2, ...) photometric loss of ``pred`` against the corrected and plain targets, at the
@@ -257,10 +251,13 @@ class ReflectiveTargets:
         l1 = (values - self.values).abs().mean(dim=1)
         if ssim_weight == 0:
             return l1
-        # One filtering call for the prediction's mean, its square and its products with both targets.
-        moments = self._filter(torch.cat([pred[None], (pred * pred)[None], pred * self.targets]))
-        mu, sq, cross = moments[0], moments[1], moments[2:]
-        ssim = _ssim_from_moments(mu, sq, self.target_mean, self.target_sq, cross).mean(dim=1)
+        if self.strategy == "pixels":
+            # One filtering call for the prediction's mean, its square and its products with both targets.
+            moments = self._filter(torch.cat([pred[None], (pred * pred)[None], pred * self.targets]))
+            mu, sq, cross = moments[0], moments[1], moments[2:]
+            ssim = ssim_from_moments(mu, sq, self.target_mean, self.target_sq, cross).mean(dim=1)
+        else:
+            ssim = ssim_map(pred.expand_as(self.targets), self.targets, self.window).mean(dim=1)
         return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
 
     def __call__(
