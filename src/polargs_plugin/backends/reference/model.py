@@ -1,17 +1,8 @@
 """A minimal 3D Gaussian Splatting model: vanilla 3DGS parameters and Adam groups.
 
-Raw parameters (one Adam group each, named like the parameters):
-
-==================  ===============  =============================================
-name                shape            activation
-==================  ===============  =============================================
-``means``           (N, 3)           none (world positions)
-``sh_dc``           (N, 1, 3)        SH DC, ``rgb = SH_C0 * dc + 0.5``
-``sh_rest``         (N, K - 1, 3)    higher SH bands, K = (degree + 1) ** 2
-``opacity_logits``  (N,)             sigmoid
-``log_scales``      (N, 3)           exp
-``quats``           (N, 4)           wxyz, normalised when activated
-==================  ===============  =============================================
+Raw parameters: one Adam group each, named like the parameters, in the layout of
+:data:`polargs_plugin.kit.RAW_NAMES` (``means``, ``sh_dc``, ``sh_rest``, ``opacity_logits``,
+``log_scales``, ``quats``; shapes and activations in :mod:`polargs_plugin.kit.append`).
 
 Learning rates are vanilla 3DGS; the position rate decays exponentially and is multiplied by
 the scene extent. Row edits (:meth:`GaussianModel.extend`, :meth:`GaussianModel.keep`,
@@ -31,7 +22,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from polargs_plugin.backends.reference.projection import SH_C0, quat_to_rotmat, rgb_to_sh, sh_to_rgb
-from polargs_plugin.kit.append import edit_rows, logit, pad_rows, raw_from_new
+from polargs_plugin.kit.append import RAW_NAMES, edit_rows, logit, pad_rows, raw_from_new
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
 __all__ = [
@@ -47,7 +38,7 @@ __all__ = [
     "init_points_in_box",
 ]
 
-PARAM_NAMES = ("means", "sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")
+PARAM_NAMES = RAW_NAMES
 
 
 @dataclass
