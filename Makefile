@@ -9,9 +9,9 @@ EXTRAS ?= dev,sfm
 setup:
 	@EXTRAS=$(EXTRAS) bash scripts/setup_env.sh
 
+# Base and Full trained, meshed and evaluated on the bundled scene; report in $(OUT)/report.md.
 demo: setup
-	$(PY) -m polargs_plugin.cli generate --scene $(SCENE) --out $(OUT) --pictures
-	@echo "Overview picture: $(OUT)/pictures/overview.png"
+	$(PY) -m polargs_plugin.cli demo --scene $(SCENE) --out $(OUT)
 
 # Two pytest workers on two cores; each worker single-threaded so they do not fight.
 test: setup

@@ -8,14 +8,15 @@ import importlib
 import sys
 
 # Subcommand modules, in the order `polargs --help` lists them.
-_COMMANDS = ("generate", "preprocess", "train", "mesh", "eval")
+_COMMANDS = ("demo", "generate", "preprocess", "train", "mesh", "eval", "ablate")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="polargs",
         description="PolarGS polarization cues for 3D Gaussian Splatting: generate synthetic "
-        "polarimetric scenes, preprocess captures, train the reference backend, mesh and evaluate.",
+        "polarimetric scenes, preprocess captures, train the reference backend, mesh and evaluate, "
+        "run the ablation (polargs demo, polargs ablate).",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMANDS:

@@ -1,0 +1,520 @@
+"""One grid cell of an ablation: a plain-data description and the one function that runs it.
+
+:func:`run_cell` is the only thing an executor calls (the local process pool today, a cluster
+job later, docs/ablation.md): it trains, meshes, evaluates and writes the run folder
+``<out>/<name>/`` atomically (everything goes to ``<out>/.tmp-<name>-<pid>/``, renamed at the end),
+so a run folder is complete or absent. A failure leaves no run folder but
+``<out>/logs/<name>.log`` (the run's output and the traceback) and raises :class:`CellFailed`.
+
+Run folder contents::
+
+    summary.json      TrainConfig, PolarConfig, git commit, seed, init, timings, figures
+    metrics.json      `polargs eval` output (Chamfer, F-score, normal MAE)
+    curves.csv        per iteration: loss, PSNR, Gaussians, Gaussians appended by Dense
+    tsdf_mesh.ply     the TSDF mesh (+ tsdf_mesh.json, its settings)
+    checkpoint.pt     the trained model (`polargs mesh` / `polargs eval` accept the folder)
+    views.npz         two views rendered for the report (colour, normals, depth) with their GT
+    mesh_error.npz    predicted mesh vertices and their signed distance to the GT mesh
+    pc_maps.npz       the PC inputs of the two views (variants with PC only)
+    run.log           everything the run printed
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import datetime
+import json
+import math
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, gt_mesh_path
+from polargs_plugin.ablation.variants import DEFAULT_FACTOR, VARIANTS, describe, variant_configs
+from polargs_plugin.io import PolarInputError, atomic_write
+
+__all__ = ["Cell", "CellFailed", "run_cell", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done"]
+
+RUN_FORMAT = "polargs-ablation-run-v1"
+SUMMARY_NAME = "summary.json"
+CURVES_NAME = "curves.csv"
+INITS: tuple[str, ...] = ("hull", "sfm", "random")
+#: SfM initialisation falls back to the visual hull below this many points.
+MIN_SFM_POINTS = 100
+
+Progress = Callable[[str, int, int], None]  # (phase, done, total)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One training run of a grid, as plain data (JSON round trip: :meth:`to_dict` / :meth:`from_dict`).
+
+    Attributes:
+        scene: the scene.
+        variant: one of :data:`~polargs_plugin.ablation.variants.VARIANTS`.
+        seed: training seed.
+        out: the grid folder; the run folder is ``out/name``.
+        init: initial points, ``hull`` (visual hull of the masks), ``sfm`` (triangulated SIFT
+            matches with the known poses, hull when too few) or ``random`` (uniform in the
+            cameras' look-at cube).
+        preset: ``cpu`` or ``paper`` (variants.PRESETS).
+        factor: schedule factor of the cpu preset (None: 0.02).
+        train_overrides / polar_overrides: nested partial dicts applied to the configs last.
+        mesh: `polargs mesh` settings (``preset``, ``voxel``, ``sdf_trunc``, ``depth_trunc``).
+        eval: `polargs eval` settings (``num_samples``, ``cull``).
+        threads: torch threads of the run.
+        device: torch device (None: cuda if available, else cpu).
+    """
+
+    scene: SceneSpec
+    variant: str
+    seed: int
+    out: str
+    init: str = "hull"
+    preset: str = "cpu"
+    factor: float | None = None
+    train_overrides: dict = field(default_factory=dict)
+    polar_overrides: dict = field(default_factory=dict)
+    mesh: dict = field(default_factory=dict)
+    eval: dict = field(default_factory=dict)
+    threads: int = 1
+    device: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown variant '{self.variant}' (known: {', '.join(VARIANTS)})")
+        if self.init not in INITS:
+            raise ValueError(f"unknown init '{self.init}' (known: {', '.join(INITS)})")
+
+    @property
+    def name(self) -> str:
+        return f"{self.scene.name}__{self.variant}__{self.init}__s{self.seed}"
+
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.out) / self.name
+
+    @property
+    def log_path(self) -> Path:
+        return Path(self.out) / "logs" / f"{self.name}.log"
+
+    def configs(self):
+        """``(TrainConfig, PolarConfig | None)`` of this cell (device and progress not yet set)."""
+        return variant_configs(self.variant, self.preset, self.factor, self.seed, self.train_overrides, self.polar_overrides)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "Cell":
+        data = dict(data)
+        data["scene"] = SceneSpec.from_dict(data["scene"])
+        return cls(**data)
+
+
+class CellFailed(RuntimeError):
+    """A cell failed; ``log`` holds its output and traceback."""
+
+    def __init__(self, name: str, log: str, message: str):
+        super().__init__(name, log, message)
+        self.name, self.log, self.message = name, log, message
+
+    def __str__(self) -> str:
+        return f"{self.name}: {self.message} (log: {self.log})"
+
+
+def is_done(cell: Cell) -> bool:
+    """Whether the cell's run folder exists (it is complete by construction)."""
+    return (cell.run_dir / SUMMARY_NAME).is_file()
+
+
+def read_summary(run_dir: str | os.PathLike) -> dict[str, Any]:
+    return json.loads((Path(run_dir) / SUMMARY_NAME).read_text())
+
+
+def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
+    """Run one cell (train, mesh, evaluate, report data) and write its run folder atomically.
+
+    Returns the run's summary (read back when the run folder already exists: nothing is rerun).
+
+    Raises:
+        CellFailed: after writing ``<out>/logs/<name>.log``; no run folder is left.
+    """
+    if is_done(cell):
+        return read_summary(cell.run_dir)
+    out = Path(cell.out)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f".tmp-{cell.name}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    log_file = open(tmp / "run.log", "w", buffering=1)
+    report = progress or (lambda phase, done, total: None)
+    try:
+        with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
+            print(f"cell {cell.name}\n{json.dumps(cell.to_dict(), indent=2)}", flush=True)
+            summary = _run(cell, tmp, report)
+        log_file.close()
+        try:
+            os.rename(tmp, cell.run_dir)
+        except OSError:
+            if not is_done(cell):  # not another process finishing the same cell first
+                raise
+            shutil.rmtree(tmp, ignore_errors=True)
+            return read_summary(cell.run_dir)
+        with contextlib.suppress(FileNotFoundError):
+            cell.log_path.unlink()  # a failure log from an earlier attempt
+        report("done", 1, 1)
+        return summary
+    except BaseException as err:
+        message = _one_line(err)
+        with contextlib.suppress(Exception):
+            log_file.write("\n" + traceback.format_exc())
+            log_file.write(f"\nFAILED: {message}\n")
+        log_file.close()
+        cell.log_path.parent.mkdir(parents=True, exist_ok=True)
+        with contextlib.suppress(OSError):
+            os.replace(tmp / "run.log", cell.log_path)
+        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(err, KeyboardInterrupt):
+            raise
+        raise CellFailed(cell.name, str(cell.log_path), message) from None
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    text = text[0] if text else ""
+    if isinstance(err, SystemExit):
+        return text or f"exit status {err.code}"
+    name = type(err).__name__
+    return text if name in ("PolarInputError",) else f"{name}: {text}"
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+        self.last = self.start
+        self.times: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.times[name] = round(now - self.last, 3)
+        self.last = now
+
+    def total(self) -> dict[str, float]:
+        return {**self.times, "total": round(time.perf_counter() - self.start, 3)}
+
+
+def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
+    import torch
+
+    from polargs_plugin.cli import eval as eval_cli
+    from polargs_plugin.cli import mesh as mesh_cli
+    from polargs_plugin.cli.train import CHECKPOINT_NAME, load_dataset
+
+    started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+    if cell.threads > 0:
+        torch.set_num_threads(cell.threads)
+    clock = _Clock()
+    report("scene", 0, 1)
+    folder = ensure_scene(cell.scene)
+    if not folder.exists():
+        raise PolarInputError(folder, "dataset not found")
+    gt_mesh = gt_mesh_path(cell.scene)
+    clock.lap("scene")
+    views = load_dataset(str(folder))
+    clock.lap("load")
+
+    train_cfg, polar_cfg = cell.configs()
+    device = cell.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    train_cfg.device, train_cfg.progress = device, False
+    hooks = None
+    if polar_cfg is not None:
+        from polargs_plugin.hooks import PolarHooks
+
+        if polar_cfg.cache_dir is None:
+            polar_cfg.cache_dir = str(Path(cell.out) / "cache" / "polar_maps")
+        hooks = PolarHooks(polar_cfg)
+    init_points, init_info = _initial_points(cell, views, train_cfg)
+    clock.lap("init")
+
+    trainer = _make_trainer(views, train_cfg, hooks, init_points, report)
+    print(f"training {cell.variant} ({describe(cell.variant)}), {train_cfg.iterations} iterations on {device}", flush=True)
+    figures = trainer.train(checkpoint=tmp / CHECKPOINT_NAME)
+    clock.lap("train")
+    _write_curves(tmp / CURVES_NAME, trainer.curve)
+    summary: dict[str, Any] = {
+        "format": RUN_FORMAT,
+        "name": cell.name,
+        "dataset": str(folder),  # what `polargs mesh` / `polargs eval` read
+        "scene": cell.scene.to_dict(),
+        "variant": cell.variant,
+        "variant_description": describe(cell.variant),
+        "seed": cell.seed,
+        "preset": cell.preset,
+        "factor": DEFAULT_FACTOR if cell.factor is None and cell.preset == "cpu" else cell.factor,
+        "num_views": len(views),
+        **init_info,
+        "gt_mesh": str(gt_mesh),
+        "train_config": train_cfg.to_dict(),
+        "polar_config": None if polar_cfg is None else polar_cfg.to_dict(),
+    }
+    _write_json(tmp / SUMMARY_NAME, summary)  # preliminary: lets the mesh / eval commands read the folder
+
+    report("mesh", 0, 1)
+    mesh_args = argparse.Namespace(
+        run_dir=tmp, preset=cell.mesh.get("preset", "synthetic"), voxel=cell.mesh.get("voxel"),
+        sdf_trunc=cell.mesh.get("sdf_trunc"), depth_trunc=cell.mesh.get("depth_trunc"), depth="median",
+        alpha_threshold=cell.mesh.get("alpha_threshold", 0.5), no_masks=False,
+        min_cluster=cell.mesh.get("min_cluster", 0.05), out=None,
+    )
+    mesh_cli.run(mesh_args)
+    clock.lap("mesh")
+    report("eval", 0, 1)
+    has_normals = any(v.normal_gt is not None for v in views)
+    eval_args = argparse.Namespace(
+        target=tmp, gt=gt_mesh, normals=has_normals, num_samples=int(cell.eval.get("num_samples", 1_000_000)),
+        seed=0, max_dist=None, fscore_threshold=None, units=cell.eval.get("units", "scene units"),
+        cull=bool(cell.eval.get("cull", True)), cull_dilation=2, out=None,
+    )
+    eval_cli.run(eval_args)
+    metrics = json.loads((tmp / "metrics.json").read_text())
+    clock.lap("eval")
+    report("pictures", 0, 1)
+    _report_data(trainer, tmp, gt_mesh)
+    clock.lap("pictures")
+
+    chamfer = metrics.get("chamfer") or {}
+    summary.update(
+        git=_git(),
+        host=platform.node(),
+        versions={"python": platform.python_version(), "torch": torch.__version__},
+        started=started,
+        finished=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        timings=clock.total(),
+        figures={
+            "chamfer": chamfer.get("chamfer"),
+            "accuracy": chamfer.get("accuracy"),
+            "completeness": chamfer.get("completeness"),
+            "fscore": chamfer.get("fscore"),
+            "precision": chamfer.get("precision"),
+            "recall": chamfer.get("recall"),
+            "normal_mae_deg": metrics.get("normal_mae_deg"),
+            "psnr": figures["psnr"],
+            "loss": figures["loss"],
+            "iterations": figures["iterations"],
+            "num_gaussians": figures["num_gaussians"],
+            "appended_total": int(sum(row["appended"] for row in trainer.curve)),
+            "train_seconds": figures["seconds"],
+            "units": chamfer.get("units", "scene units"),
+        },
+        eval={"culled": bool(eval_args.cull), "num_samples": eval_args.num_samples,
+              "max_dist": chamfer.get("max_dist"), "fscore_threshold": chamfer.get("fscore_threshold")},
+        files=sorted(p.name for p in tmp.iterdir() if p.name != SUMMARY_NAME) + [SUMMARY_NAME],
+    )
+    _write_json(tmp / SUMMARY_NAME, summary)
+    print(f"finished {cell.name}: {json.dumps(summary['figures'])}", flush=True)
+    return summary
+
+
+def _make_trainer(views, config, hooks, init_points, report: Progress):
+    """A reference Trainer that records every iteration's logs (the curves) and reports progress."""
+    from polargs_plugin.backends.reference.trainer import Trainer
+
+    class RecordingTrainer(Trainer):
+        curve: list[dict[str, float]]
+
+        def step(self) -> dict[str, float]:
+            logs = super().step()
+            self.curve.append({
+                "iteration": self.iteration,
+                **{k: float(v) for k, v in logs.items() if k not in ("num", "appended")},
+                "num_gaussians": int(logs["num"]),
+                "appended": int(logs.get("appended", 0)),
+            })
+            report("train", self.iteration, self.config.iterations)
+            if self.iteration % 50 == 0 or self.iteration == self.config.iterations:
+                print(f"iteration {self.iteration}: loss {logs['loss']:.4f}, PSNR {logs['psnr']:.2f}, "
+                      f"{int(logs['num'])} Gaussians", flush=True)
+            return logs
+
+    trainer = RecordingTrainer(views, config, hooks=hooks, init_points=init_points)
+    trainer.curve = []
+    return trainer
+
+
+def _initial_points(cell: Cell, views, config):
+    """(init_points for the Trainer or None for its default visual hull, record for the summary)."""
+    import torch
+
+    info: dict[str, Any] = {"init": cell.init, "init_used": cell.init, "init_note": None}
+    if cell.init == "hull":
+        info["init_points"] = config.num_init_points
+        return None, info
+    if cell.init == "random":
+        from polargs_plugin.backends.reference.model import init_points_in_box
+
+        points = init_points_in_box(views, config.num_init_points, torch.Generator().manual_seed(cell.seed))
+        info["init_points"] = int(points[0].shape[0])
+        return points, info
+    from polargs_plugin.ablation.init import sfm_points
+
+    try:
+        points, colors = sfm_points(views)
+        count = int(points.shape[0])
+        if count >= MIN_SFM_POINTS:
+            info["init_points"] = count
+            return (points, colors), info
+        note = f"SfM found {count} points (< {MIN_SFM_POINTS})"
+    except NotImplementedError as err:
+        note = f"SfM unavailable ({err})"
+    print(f"init: {note}; falling back to the visual hull", flush=True)
+    info.update(init_used="hull", init_note=note + "; fell back to the visual hull", init_points=config.num_init_points)
+    return None, info
+
+
+def _write_json(path: Path, data: Any) -> None:
+    with atomic_write(path) as handle:
+        json.dump(_json_safe(data), handle, indent=2, allow_nan=False)
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _write_curves(path: Path, curve: list[dict[str, float]]) -> None:
+    """curves.csv: iteration, loss, psnr, num_gaussians, appended, appended_total, then the hooks' terms."""
+    fixed = ["iteration", "loss", "psnr", "num_gaussians", "appended", "appended_total"]
+    extra = sorted({k for row in curve for k in row} - set(fixed))
+    total = 0
+    with atomic_write(path) as handle:
+        writer = csv.writer(handle)
+        writer.writerow(fixed + extra)
+        for row in curve:
+            total += row["appended"]
+            values = [row["iteration"], row["loss"], row["psnr"], row["num_gaussians"], row["appended"], total]
+            writer.writerow([_fmt(v) for v in values] + [_fmt(row.get(k, "")) for k in extra])
+
+
+def _fmt(value: Any) -> Any:
+    return f"{value:.6g}" if isinstance(value, float) else value
+
+
+REPORT_VIEW_COUNT = 2
+
+
+def report_view_indices(num_views: int) -> list[int]:
+    """The two views shown side by side in the report: the first and the middle one."""
+    return sorted({0, num_views // 2})[:REPORT_VIEW_COUNT]
+
+
+def _report_data(trainer, tmp: Path, gt_mesh: Path) -> None:
+    """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report."""
+    import numpy as np
+    import torch
+
+    from polargs_plugin.mesh import read_mesh
+    from polargs_plugin.io import atomic_path
+
+    indices = report_view_indices(len(trainer.views))
+    views = [trainer.views[i] for i in indices]
+    data: dict[str, np.ndarray] = {}
+    with torch.no_grad():
+        for i, (index, view) in enumerate(zip(indices, views)):
+            out = trainer.model.render(view, background=trainer.background, backend=trainer.config.backend)
+            depth = out.median_depth if out.median_depth is not None else out.depth
+            fields = {
+                "color": out.color.clamp(0, 1), "normal": out.normal, "depth": depth, "alpha": out.alpha,
+                "target": trainer.targets[index],
+                "K": view.K, "world_to_camera": view.world_to_camera,
+            }
+            for key, value in (("mask", view.mask), ("normal_gt", view.normal_gt), ("depth_gt", view.depth_gt)):
+                if value is not None:
+                    fields[key] = value
+            for key, value in fields.items():
+                data[f"{i}/{key}"] = value.detach().cpu().numpy()
+            data[f"{i}/name"] = np.array(view.name)
+    with atomic_path(tmp / "views.npz") as path:
+        np.savez_compressed(path, **data)
+
+    hooks = trainer.hooks
+    if hooks is not None and hooks.config.correction.enabled and getattr(hooks, "maps", None):
+        maps: dict[str, np.ndarray] = {}
+        for i, view in enumerate(views):
+            m = hooks.maps.get(view.name)
+            if m is None:
+                continue
+            for key in ("aolp", "dolp", "intensity", "specular_mask", "overexposed_mask", "i_diff", "i_chro"):
+                value = getattr(m, key)
+                if value is not None:
+                    maps[f"{i}/{key}"] = value.detach().cpu().numpy()
+        if maps:
+            with atomic_path(tmp / "pc_maps.npz") as path:
+                np.savez_compressed(path, **maps)
+
+    pred = read_mesh(tmp / "tsdf_mesh.ply")
+    vertices = np.asarray(pred.vertices, dtype=np.float64)
+    distance = signed_distance(vertices, read_mesh(gt_mesh))
+    with atomic_path(tmp / "mesh_error.npz") as path:
+        np.savez_compressed(path, vertices=vertices.astype(np.float32), signed_distance=distance.astype(np.float32))
+
+
+def signed_distance(points, gt_mesh, num_samples: int = 400_000, seed: int = 0):
+    """Distance of each point to the GT surface (nearest of ``num_samples`` area-uniform samples),
+    signed by the GT triangle's orientation (positive on the side its normal points to: outside
+    for an outward-oriented closed mesh)."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(gt_mesh.vertices, dtype=np.float64)
+    triangles = np.asarray(gt_mesh.triangles, dtype=np.int64)
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    cross = np.cross(b - a, c - a)
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normals = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-20)
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(triangles), size=num_samples, p=area / area.sum())
+    r1, r2 = rng.random(num_samples), rng.random(num_samples)
+    flip = r1 + r2 > 1
+    r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+    samples = a[face] + r1[:, None] * (b[face] - a[face]) + r2[:, None] * (c[face] - a[face])
+    distance, index = cKDTree(samples).query(np.asarray(points, dtype=np.float64), workers=1)
+    sign = np.sign(np.einsum("ij,ij->i", points - samples[index], normals[face[index]]))
+    return distance * np.where(sign == 0, 1.0, sign)
+
+
+def _git() -> dict[str, Any]:
+    """Commit of the source tree this package runs from (null outside a git checkout)."""
+    here = Path(__file__).resolve().parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10)
+        if commit.returncode != 0:
+            return {"commit": None, "dirty": None}
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                                capture_output=True, text=True, timeout=10)
+        return {"commit": commit.stdout.strip(), "dirty": bool(status.stdout.strip()) if status.returncode == 0 else None}
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+
+
+if __name__ == "__main__":  # run one cell from its JSON description: python -m polargs_plugin.ablation.cell CELL.json
+    cell = Cell.from_dict(json.loads(Path(sys.argv[1]).read_text()))
+    try:
+        print(json.dumps(run_cell(cell)["figures"], indent=2))
+    except CellFailed as failure:
+        print(f"error: {failure}", file=sys.stderr)
+        sys.exit(1)

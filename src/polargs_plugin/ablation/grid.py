@@ -1,0 +1,270 @@
+"""Expand scenes x variants x seeds (x inits) into cells and run them on a local process pool.
+
+Resumable: a cell whose run folder exists is skipped (run folders are complete or absent).
+The grid goes on after a failed cell; :class:`GridResult` lists the failures with their logs.
+``<out>/grid.json`` records the cells as plain data (what a cluster executor would submit).
+
+This module imports nothing heavy at import time: pool workers (``spawn``) import it first and
+set their thread counts before torch / numba load.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import json
+import multiprocessing
+import os
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence, TextIO
+
+from polargs_plugin.ablation.cell import Cell, CellFailed, is_done, run_cell
+from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene
+
+__all__ = ["expand", "run_grid", "GridResult", "default_jobs", "write_grid_file", "GRID_FILE"]
+
+GRID_FILE = "grid.json"
+
+
+def expand(scenes: Sequence[SceneSpec], variants: Sequence[str], seeds: Sequence[int], out: str | os.PathLike,
+           inits: Sequence[str] = ("hull",), **common: Any) -> list[Cell]:
+    """Every (scene, seed, init, variant) combination as a :class:`Cell` (``common``: the other
+    Cell fields, e.g. ``preset``, ``factor``, ``train_overrides``). Order: scene, seed, init, variant."""
+    out = str(Path(out).resolve())
+    return [Cell(scene=scene, variant=variant, seed=int(seed), out=out, init=init, **common)
+            for scene in scenes for seed in seeds for init in inits for variant in variants]
+
+
+def default_jobs(threads_per_run: int = 1) -> int:
+    """Cores available to this process // threads per run (at least 1)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(1, threads_per_run))
+
+
+def write_grid_file(cells: Sequence[Cell], out: str | os.PathLike) -> Path:
+    """``<out>/grid.json``: the cells of the latest invocation, as plain data."""
+    from polargs_plugin.io import atomic_write
+
+    path = Path(out) / GRID_FILE
+    with atomic_write(path) as handle:
+        json.dump({"format": "polargs-ablation-grid-v1", "cells": [c.to_dict() for c in cells]}, handle, indent=2)
+    return path
+
+
+@dataclass
+class GridResult:
+    """What :func:`run_grid` did: cells skipped (already done), finished now, and failed."""
+
+    skipped: list[Cell] = field(default_factory=list)
+    finished: list[tuple[Cell, dict]] = field(default_factory=list)
+    failed: list[tuple[Cell, str, str]] = field(default_factory=list)  # (cell, log path, message)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+
+# ------------------------------------------------------------------------------------ progress
+class _Progress:
+    """One bar for the whole grid, in work units: a cell's iterations, plus a tenth of them each
+    for meshing and for evaluation (with the report pictures)."""
+
+    def __init__(self, cells: Sequence[Cell], enabled: bool, stream: TextIO):
+        self.lock = threading.Lock()
+        self.stream = stream
+        self.weights: dict[str, tuple[int, int]] = {}
+        for cell in cells:
+            iterations = max(1, int(cell.configs()[0].iterations))
+            self.weights[cell.name] = (iterations, max(1, iterations // 10))
+        self.done: dict[str, int] = dict.fromkeys(self.weights, 0)
+        self.counts = {"done": 0, "failed": 0, "running": 0}
+        self.started: set[str] = set()
+        total = sum(i + 2 * e for i, e in self.weights.values())
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc="ablate", unit="step", file=stream, dynamic_ncols=True,
+                            mininterval=0.5, bar_format="{l_bar}{bar}| {percentage:3.0f}% [{elapsed}<{remaining}]{postfix}")
+            self._postfix()
+
+    def _postfix(self) -> None:
+        if self.bar is not None:
+            c = self.counts
+            self.bar.set_postfix_str(f"{c['done']}/{len(self.weights)} cells done, {c['running']} running, {c['failed']} failed",
+                                     refresh=False)
+
+    def update(self, name: str, phase: str, done: int, total: int) -> None:
+        iterations, extra = self.weights[name]
+        units = {"scene": 0, "train": round(iterations * done / max(1, total)), "mesh": iterations,
+                 "eval": iterations + extra, "pictures": iterations + 2 * extra, "done": iterations + 2 * extra}.get(phase)
+        if units is None:
+            return
+        with self.lock:
+            if name not in self.started:
+                self.started.add(name)
+                self.counts["running"] += 1
+                self._postfix()
+            delta = units - self.done[name]
+            if delta > 0:
+                self.done[name] = units
+                if self.bar is not None:
+                    self.bar.update(delta)
+
+    def finish(self, name: str, ok: bool, line: str) -> None:
+        iterations, extra = self.weights[name]
+        with self.lock:
+            if name in self.started:
+                self.counts["running"] -= 1
+            self.counts["done" if ok else "failed"] += 1
+            delta = iterations + 2 * extra - self.done[name]
+            self.done[name] += delta
+            if self.bar is not None:
+                self.bar.update(delta)
+                self._postfix()
+                self.bar.refresh()
+                self.bar.write(line, file=self.stream)
+            else:
+                print(line, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _finished_line(cell: Cell, summary: dict) -> str:
+    f = summary.get("figures", {})
+
+    def num(key: str, fmt: str) -> str:
+        return "n/a" if f.get(key) is None else format(f[key], fmt)
+
+    seconds = summary.get("timings", {}).get("total", 0.0)
+    return (f"done    {cell.name}: Chamfer {num('chamfer', '.4g')}, normal MAE {num('normal_mae_deg', '.2f')} deg, "
+            f"PSNR {num('psnr', '.2f')} dB, {f.get('num_gaussians', '?')} Gaussians, {seconds:.0f} s")
+
+
+# ------------------------------------------------------------------------------------- workers
+_QUEUE: Any = None
+
+
+def _init_worker(queue: Any, threads: int) -> None:
+    """Pool initializer: thread counts before torch / numba are imported, the progress queue."""
+    global _QUEUE
+    _QUEUE = queue
+    for key in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[key] = str(max(1, threads))
+
+
+def _worker(cell_data: dict) -> dict:
+    cell = Cell.from_dict(cell_data)
+    step = max(1, int(cell.configs()[0].iterations) // 100)
+
+    def report(phase: str, done: int, total: int) -> None:
+        if phase != "train" or done % step == 0 or done == total:
+            _QUEUE.put((cell.name, phase, done, total))
+
+    return run_cell(cell, progress=report)
+
+
+def _write_crash_log(cell: Cell, message: str) -> str:
+    cell.log_path.parent.mkdir(parents=True, exist_ok=True)
+    if not cell.log_path.exists():
+        cell.log_path.write_text(f"cell {cell.name}\n{json.dumps(cell.to_dict(), indent=2)}\n\nFAILED: {message}\n")
+    return str(cell.log_path)
+
+
+# ---------------------------------------------------------------------------------------- grid
+def run_grid(cells: Sequence[Cell], jobs: int = 1, progress: bool = True, stream: TextIO | None = None,
+             prepare_scenes: bool = True) -> GridResult:
+    """Run the cells not yet done, ``jobs`` at a time; never stops at a failure.
+
+    Args:
+        cells: the grid (see :func:`expand`); their ``out`` folders are created.
+        jobs: parallel runs. 1 runs in this process; more use a ``spawn`` process pool whose
+            workers use ``cell.threads`` threads each.
+        progress: one progress bar for the whole grid on ``stream`` (and one line per cell).
+        stream: where progress goes (default: stderr).
+        prepare_scenes: generate the bundled scenes first (once each; a failure here is left to
+            the cells, which then fail with a log).
+    """
+    stream = stream or sys.stderr
+    result = GridResult()
+    names = [c.name for c in cells]
+    if len(set(names)) != len(names):
+        raise ValueError("the grid holds the same cell twice")
+    for out in {c.out for c in cells}:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    pending = []
+    for cell in cells:
+        (result.skipped if is_done(cell) else pending).append(cell)
+    if not pending:
+        return result
+    if prepare_scenes:
+        for scene in {c.scene for c in pending if c.scene.bundled}:
+            if not Path(scene.path).is_dir():
+                print(f"generating {scene.bundled} ({scene.views} views, {scene.width}x{scene.height}) -> {scene.path}",
+                      file=stream, flush=True)
+                with contextlib.suppress(Exception):
+                    ensure_scene(scene, progress=progress)
+    bar = _Progress(pending, progress, stream)
+    try:
+        if jobs <= 1:
+            for cell in pending:
+                try:
+                    summary = run_cell(cell, progress=lambda phase, done, total, n=cell.name: bar.update(n, phase, done, total))
+                except CellFailed as failure:
+                    result.failed.append((cell, failure.log, failure.message))
+                    bar.finish(cell.name, False, f"FAILED  {failure}")
+                else:
+                    result.finished.append((cell, summary))
+                    bar.finish(cell.name, True, _finished_line(cell, summary))
+        else:
+            _run_pool(pending, jobs, bar, result)
+    finally:
+        bar.close()
+    return result
+
+
+def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridResult) -> None:
+    context = multiprocessing.get_context("spawn")
+    queue = context.Queue()
+    threads = max(c.threads for c in pending)
+
+    def pump() -> None:
+        while True:
+            item = queue.get()
+            if item is None:
+                return
+            with contextlib.suppress(KeyError):
+                bar.update(*item)
+
+    reader = threading.Thread(target=pump, daemon=True)
+    reader.start()
+    try:
+        with cf.ProcessPoolExecutor(max_workers=min(jobs, len(pending)), mp_context=context,
+                                    initializer=_init_worker, initargs=(queue, threads)) as pool:
+            futures = {pool.submit(_worker, cell.to_dict()): cell for cell in pending}
+            for future in cf.as_completed(futures):
+                cell = futures[future]
+                try:
+                    summary = future.result()
+                except CellFailed as failure:
+                    result.failed.append((cell, failure.log, failure.message))
+                    bar.finish(cell.name, False, f"FAILED  {failure}")
+                except Exception as err:  # the worker process died (BrokenProcessPool) or could not start
+                    message = f"worker process failed: {type(err).__name__}: {err}"
+                    log = _write_crash_log(cell, message)
+                    result.failed.append((cell, log, message))
+                    bar.finish(cell.name, False, f"FAILED  {cell.name}: {message} (log: {log})")
+                else:
+                    result.finished.append((cell, summary))
+                    bar.finish(cell.name, True, _finished_line(cell, summary))
+    finally:
+        queue.put(None)
+        reader.join(timeout=5)

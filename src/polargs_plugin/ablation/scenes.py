@@ -1,0 +1,135 @@
+"""Scenes of an ablation grid: bundled synthetic scenes (generated once into a cache folder) or
+dataset folders with a ground-truth mesh.
+
+Spelling on the command line (``polargs ablate --scenes``, comma-separated):
+
+- ``glossy_plane_sphere``: a bundled scene (``polargs generate --help`` lists them), generated
+  with ``--views`` / ``--size`` into ``<cache>/<name>-<V>v-<W>x<H>-s<seed>/`` (reused when present;
+  the folder appears complete or not at all);
+- ``NAME=PATH:GT_MESH``: a dataset folder in any supported format and its ground-truth mesh;
+- ``NAME=PATH`` or ``PATH``: the ground-truth mesh is the first of :data:`GT_MESH_NAMES` found in
+  the folder (``gt_mesh.ply``, then ``mesh.ply``, which the project's own scene format ships).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from polargs_plugin.io import PolarInputError
+
+__all__ = ["SceneSpec", "GT_MESH_NAMES", "parse_scene", "ensure_scene", "gt_mesh_path", "bundled_names"]
+
+#: Files looked up, in order, next to a dataset when no GT mesh is given.
+GT_MESH_NAMES: tuple[str, ...] = ("gt_mesh.ply", "mesh.ply")
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def bundled_names() -> tuple[str, ...]:
+    from polargs_plugin.data.scenes import SCENE_BUILDERS
+
+    return tuple(SCENE_BUILDERS)
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """One scene as plain data.
+
+    Attributes:
+        name: short name used in run names and tables.
+        path: dataset folder (for a bundled scene: the cache folder it is generated into).
+        gt_mesh: ground-truth mesh file, or None to look for :data:`GT_MESH_NAMES` in ``path``.
+        bundled: the generator's scene name for a bundled scene, else None.
+        views, width, height, seed: generation settings of a bundled scene.
+    """
+
+    name: str
+    path: str
+    gt_mesh: str | None = None
+    bundled: str | None = None
+    views: int = 24
+    width: int = 128
+    height: int = 128
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "SceneSpec":
+        return cls(**data)
+
+
+def parse_scene(text: str, cache_dir: str | os.PathLike, views: int = 24, width: int = 128, height: int = 128) -> SceneSpec:
+    """A :class:`SceneSpec` from its command-line spelling (module docstring).
+
+    A path that does not exist is accepted here: its cells fail with a log, the rest of the grid
+    runs. Raises ValueError for a malformed entry (empty, bad name).
+    """
+    text = text.strip()
+    if not text:
+        raise ValueError("empty scene entry")
+    if "=" not in text and text in bundled_names():
+        folder = Path(cache_dir).resolve() / f"{text}-{views}v-{width}x{height}-s0"
+        return SceneSpec(text, str(folder), None, text, views, width, height, 0)
+    name, _, rest = text.partition("=") if "=" in text else ("", "", text)
+    gt = None
+    if ":" in rest and Path(rest).exists() is False:
+        rest, gt = rest.rsplit(":", 1)
+    if not rest:
+        raise ValueError(f"scene '{text}': no dataset path")
+    path = Path(rest)
+    name = name or path.resolve().name
+    if not _NAME_RE.match(name):
+        raise ValueError(f"scene '{text}': name '{name}' may only hold letters, digits, '_', '.', '-'")
+    return SceneSpec(name, str(path.resolve()), str(Path(gt).resolve()) if gt else None)
+
+
+def ensure_scene(spec: SceneSpec, progress: bool = False) -> Path:
+    """The scene's dataset folder; a bundled scene is generated first if its folder is missing.
+
+    Generation writes ``<folder>.tmp-<pid>`` and renames it: concurrent callers (parallel cells,
+    cluster jobs) never see a half-written scene; the first rename wins.
+    """
+    folder = Path(spec.path)
+    if spec.bundled is None or folder.is_dir():
+        return folder
+    from polargs_plugin.data.scene_format import write_scene
+    from polargs_plugin.data.synthetic import generate_scene
+
+    if spec.bundled not in bundled_names():
+        raise PolarInputError(folder, f"unknown bundled scene '{spec.bundled}' (known: {', '.join(bundled_names())})")
+    tmp = folder.with_name(f".{folder.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        scene = generate_scene(spec.bundled, num_views=spec.views, width=spec.width, height=spec.height,
+                               seed=spec.seed, progress=progress)
+        write_scene(scene, tmp)
+        try:
+            os.rename(tmp, folder)
+        except OSError:
+            if not folder.is_dir():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return folder
+
+
+def gt_mesh_path(spec: SceneSpec) -> Path:
+    """The ground-truth mesh file of a scene; raises PolarInputError naming what was tried."""
+    if spec.gt_mesh:
+        path = Path(spec.gt_mesh)
+        if not path.is_file():
+            raise PolarInputError(path, "ground-truth mesh not found")
+        return path
+    for name in GT_MESH_NAMES:
+        path = Path(spec.path) / name
+        if path.is_file():
+            return path
+    raise PolarInputError(
+        spec.path, f"no ground-truth mesh: give it as {spec.name}=PATH:GT_MESH or put {GT_MESH_NAMES[0]} in the folder"
+    )

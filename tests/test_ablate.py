@@ -1,0 +1,186 @@
+"""`polargs demo` and `polargs ablate` on a tiny scene: outputs, resuming, failures (docs/ablation.md).
+
+Tiny sizes go through the commands' own options (6 views of 32x32, 60 iterations, <= 800
+Gaussians, 20k Chamfer samples), so the whole module runs in well under a minute once numba's
+kernels are cached.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+
+import pytest
+
+from polargs_plugin.ablation.cell import Cell, CellFailed, run_cell
+from polargs_plugin.ablation.gather import gather
+from polargs_plugin.ablation.grid import expand, run_grid
+from polargs_plugin.ablation.scenes import SceneSpec, parse_scene
+from polargs_plugin.ablation.variants import VARIANTS, variant_configs
+from polargs_plugin.cli import main
+
+TINY = ["--views", "6", "--size", "32x32", "--factor", "0.002", "--eval-samples", "20000",
+        "--train-set", "num_init_points=300", "--train-set", "density.max_gaussians=800", "--jobs", "1", "--quiet"]
+SCENE = "glossy_plane_sphere"
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
+
+
+# ------------------------------------------------------------------------------- no training
+def test_variant_switches():
+    expected = {  # PC, Dense, L_ref, L_n, L_dn, L_scale
+        "reg": (False, False, False, False, True, True),
+        "no-dense": (True, False, True, False, True, True),
+        "no-pc": (False, True, False, True, True, True),
+        "full": (True, True, True, True, True, True),
+    }
+    train, polar = variant_configs("base", factor=0.002, seed=3)
+    assert polar is None and train.seed == 3 and train.iterations == 60
+    for variant, switches in expected.items():
+        train, polar = variant_configs(variant, factor=0.002, seed=3, train_overrides={"density": {"max_gaussians": 10}})
+        l = polar.losses
+        assert (polar.correction.enabled, polar.densify.enabled, l.use_ref, l.use_normal, l.use_depth_normal, l.use_scale) == switches
+        assert train.density.max_gaussians == 10 and l.ssim_weight == train.ssim_weight
+        assert polar.densify.patchmatch.seed == 3
+    assert set(expected) | {"base"} == set(VARIANTS)
+    with pytest.raises(KeyError, match="nonsense"):
+        variant_configs("full", polar_overrides={"losses": {"nonsense": 1}})
+
+
+def test_cell_is_plain_data(tmp_path):
+    scene = parse_scene(SCENE, tmp_path / "cache", 6, 32, 32)
+    assert scene.bundled == SCENE and scene.path.endswith(f"{SCENE}-6v-32x32-s0")
+    named = parse_scene(f"mine={tmp_path}/data:{tmp_path}/gt.ply", tmp_path)
+    assert (named.name, named.gt_mesh, named.bundled) == ("mine", str(tmp_path / "gt.ply"), None)
+    assert parse_scene(str(tmp_path), tmp_path).name == tmp_path.name
+    cells = expand([scene], ["base", "full"], [0, 1], tmp_path, inits=("hull", "random"), factor=0.002,
+                   train_overrides={"density": {"max_gaussians": 800}})
+    assert len(cells) == 8 and len({c.name for c in cells}) == 8
+    for cell in cells:
+        assert Cell.from_dict(json.loads(json.dumps(cell.to_dict()))) == cell
+    assert cells[0].run_dir == tmp_path / cells[0].name
+    with pytest.raises(ValueError, match="unknown variant"):
+        Cell(scene=scene, variant="nope", seed=0, out=str(tmp_path))
+
+
+def test_usage_errors_are_one_line(tmp_path, capsys):
+    assert main(["ablate", "--scenes", SCENE, "--variants", "base,nope", "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --variants:") and "\n" not in err
+    assert main(["ablate", "--scenes", SCENE, "--train-set", "nonsense=1", "--out", str(tmp_path / "a")]) == 2
+    assert "error: --train-set" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert main(["demo", "--out", str(tmp_path / "file")]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {tmp_path / 'file'}: exists and is not a folder"
+
+
+def test_pool_reports_failed_cells_with_logs(tmp_path):
+    """The process-pool path (spawned workers) with two cells that fail fast: both are reported
+    with their logs, nothing else is left behind."""
+    bad = SceneSpec("missing", str(tmp_path / "missing"))
+    cells = expand([bad], ["base", "reg"], [0], tmp_path / "out")
+    result = run_grid(cells, jobs=2, progress=False)
+    assert not result.ok and {c.name for c, _, _ in result.failed} == {c.name for c in cells}
+    for cell, log, message in result.failed:
+        assert "dataset not found" in message and Path(log) == cell.log_path
+        assert "Traceback" in Path(log).read_text()
+        assert not cell.run_dir.exists()
+    assert not list((tmp_path / "out").glob(".tmp-*"))
+    with pytest.raises(CellFailed, match="dataset not found"):
+        run_cell(cells[0])
+
+
+# ---------------------------------------------------------------------------------- training
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "--out", str(out), *TINY]) == 0
+    return out
+
+
+def _check_run(folder: Path, variant: str) -> dict:
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["variant"] == variant and summary["seed"] == 0
+    assert summary["init"] == summary["init_used"] == "hull"
+    assert summary["train_config"]["iterations"] == 60
+    assert (summary["polar_config"] is None) == (variant == "base")
+    assert "commit" in summary["git"] and summary["timings"]["total"] > 0
+    figures = summary["figures"]
+    for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians"):
+        assert _finite(figures[key]), (key, figures[key])
+    lines = (folder / "curves.csv").read_text().strip().splitlines()
+    assert lines[0].startswith("iteration,loss,psnr,num_gaussians,appended,appended_total") and len(lines) == 61
+    for name in ("metrics.json", "tsdf_mesh.ply", "checkpoint.pt", "views.npz", "mesh_error.npz", "run.log"):
+        assert (folder / name).is_file(), name
+    assert (folder / "pc_maps.npz").is_file() == (variant == "full")
+    return summary
+
+
+def test_demo_writes_runs_results_and_report(demo_dir, capsys):
+    runs = {p.name: p for p in demo_dir.iterdir() if (p / "summary.json").is_file()}
+    assert set(runs) == {f"{SCENE}__base__hull__s0", f"{SCENE}__full__hull__s0"}
+    for name, folder in runs.items():
+        _check_run(folder, name.split("__")[1])
+    for name in ("results.csv", "results.json", "results.md", "report.md", "grid.json"):
+        assert (demo_dir / name).is_file(), name
+    table = json.loads((demo_dir / "results.json").read_text())["table"]
+    assert [e["variant"] for e in table] == ["base", "full"]
+    assert all(_finite(e["chamfer"]["mean"]) for e in table)
+    report = (demo_dir / "report.md").read_text()
+    pictures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
+    kinds = {Path(p).name.split("_" + SCENE)[0] for p in pictures}
+    assert kinds == {"metrics", "views", "mesh_error", "pc_inputs", "curves"}
+    for picture in pictures:
+        assert (demo_dir / picture).stat().st_size > 1000
+    assert "polargs demo" in report and not list(demo_dir.glob(".tmp-*"))
+
+
+def test_ablate_resumes_and_reports_failures(demo_dir, capsys):
+    """Same folder as the demo: base is skipped, reg trains, a missing dataset fails with its log;
+    a second invocation trains nothing."""
+    args = ["ablate", "--scenes", f"{SCENE},broken={demo_dir}/no_such_dataset", "--variants", "base,reg",
+            "--out", str(demo_dir), *TINY]
+    base = demo_dir / f"{SCENE}__base__hull__s0" / "summary.json"
+    before = base.stat().st_mtime_ns
+    capsys.readouterr()
+    assert main(args) == 1
+    captured = capsys.readouterr()
+    assert "1 run(s) finished, 1 skipped (already done), 2 failed" in captured.out
+    logs = [demo_dir / "logs" / f"broken__{v}__hull__s0.log" for v in ("base", "reg")]
+    for log in logs:
+        assert str(log) in captured.err and "dataset not found" in log.read_text()
+        assert not (demo_dir / log.stem).exists()
+    assert base.stat().st_mtime_ns == before
+    _check_run(demo_dir / f"{SCENE}__reg__hull__s0", "reg")
+
+    stamps = {p: p.stat().st_mtime_ns for p in demo_dir.glob("*/summary.json")}
+    assert main(args) == 1
+    assert "0 run(s) finished, 2 skipped (already done), 2 failed" in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in demo_dir.glob("*/summary.json")} == stamps
+
+    results = gather(demo_dir, write=False)
+    assert [e["variant"] for e in results["table"]] == ["base", "reg", "full"]
+    assert results["table"][2]["chamfer_vs_base"] is not None
+    assert "broken__base__hull__s0" in (demo_dir / "report.md").read_text()  # listed under failed runs
+    assert main(["ablate", "--out", str(demo_dir), "--gather-only", "--no-report"]) == 0
+    assert "| full |" in capsys.readouterr().out
+
+
+def test_sfm_init_falls_back_to_the_hull_and_says_so(tmp_path):
+    """6 views of 32x32 give SIFT almost nothing: the run records the fallback (no training here)."""
+    pytest.importorskip("pycolmap")
+    from polargs_plugin.ablation.cell import MIN_SFM_POINTS, _initial_points
+    from polargs_plugin.ablation.init import sfm_points
+    from polargs_plugin.data.synthetic import generate_scene
+
+    views = generate_scene(SCENE, num_views=6, width=32, height=32).views
+    points, colors = sfm_points(views)
+    assert points.shape[1] == colors.shape[1] == 3 and len(points) < MIN_SFM_POINTS
+    cell = Cell(scene=SceneSpec(SCENE, str(tmp_path)), variant="base", seed=0, out=str(tmp_path), init="sfm")
+    init_points, info = _initial_points(cell, views, cell.configs()[0])
+    assert init_points is None and info["init"] == "sfm" and info["init_used"] == "hull"
+    assert "fell back to the visual hull" in info["init_note"]
