@@ -208,14 +208,59 @@ def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
     info = json.loads((run_dir / "tsdf_mesh.json").read_text())
     assert info["voxel_size"] == 0.02 and info["sdf_trunc"] == pytest.approx(0.08) and info["views"] == 8
 
-    assert main(["eval", str(run_dir), "--gt", str(gt_path), "--normals", "--cull", "--num-samples", "60000"]) == 0
+    assert main(["eval", str(run_dir), "--gt", str(gt_path), "--normals", "--cull", "--num-samples", "60000", "--quiet"]) == 0
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["chamfer"]["chamfer"] < 1.5 * 0.02 and metrics["chamfer"]["culled"] is True
     assert metrics["normal_mae_deg"] == pytest.approx(math.degrees(0.3), abs=1e-3)
     printed = capsys.readouterr().out
     assert "Chamfer (mean)" in printed and "normal MAE" in printed
 
-    with pytest.raises(PolarInputError, match="neither a run folder nor a mesh file"):
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:  # ordinary errors: one `error:` line, exit status 2, no traceback
         main(["eval", str(tmp_path / "missing"), "--gt", str(gt_path)])
-    with pytest.raises(SystemExit, match="need a run folder"):
+    assert exc.value.code == 2 and "neither a run folder nor a mesh file" in str(exc.value)
+    with pytest.raises(SystemExit, match="needs a run folder"):
         main(["eval", str(gt_path), "--gt", str(gt_path), "--normals"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("error: ") for line in err)
+
+
+def test_tsdf_of_exact_depth_has_no_signed_bias():
+    """Depth bias, part 1 (docs/evaluation.md "Depth bias"): TSDF fusion of exact depth maps puts
+    the surface on the sphere; the median signed distance is far below a voxel."""
+    from polargs_plugin.metrics import signed_distances
+
+    depths, colours, Ks, w2cs, masks = sphere_inputs()
+    mesh = tsdf_fuse(depths, colours, Ks, w2cs, masks=masks, voxel_size=0.02, sdf_trunc=0.08)
+    signed = signed_distances(np.asarray(mesh.vertices), o3d.geometry.TriangleMesh.create_sphere(RADIUS, resolution=200))
+    assert abs(np.median(signed)) < 0.1 * 0.02
+
+
+def test_thick_gaussians_on_the_surface_render_in_front_of_it():
+    """Depth bias, part 2: Gaussians centred on a sphere render their median depth in front of
+    it when round (about 1.4 scales) and on it when flat, so the rendered depth and TSDF
+    cannot make a mesh sit inside; an inside mesh means the trained centres sit inside."""
+    from polargs_plugin.backends.reference.rasterizer import rasterize
+
+    radius, n = 1.0, 6000
+    i = np.arange(n) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * i / n), math.pi * (1 + 5**0.5) * i
+    normals = np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1)
+    z = np.array([0.0, 0.0, 1.0])
+    quats = np.concatenate([(1 + normals @ z)[:, None], np.cross(np.broadcast_to(z, normals.shape), normals)], 1)
+    quats[quats[:, 0] < 1e-6] = [0.0, 1.0, 0.0, 0.0]
+    spacing = math.sqrt(4 * math.pi / n)
+    _, _, Ks, w2cs, masks = sphere_inputs()
+    offsets = {}
+    for name, thickness in (("flat", 1e-3), ("round", 1.0)):
+        scales = torch.tensor([[spacing, spacing, spacing * thickness]] * n, dtype=torch.float32)
+        errors = []
+        for K, w2c, mask in list(zip(Ks, w2cs, masks))[:2]:
+            out = rasterize(torch.tensor(radius * normals, dtype=torch.float32), torch.tensor(quats, dtype=torch.float32),
+                            scales, torch.full((n,), 0.9), torch.full((n, 3), 0.5), K.float(), w2c.float(), SIZE, SIZE)
+            gt, _ = sphere_depth(K.numpy(), w2c.numpy(), radius)
+            inner = torch.nn.functional.max_pool2d((~mask).float()[None], 5, 1, 2)[0] == 0
+            errors.append((out.median_depth - gt)[inner])
+        offsets[name] = float(torch.cat(errors).median()) / spacing
+    assert abs(offsets["flat"]) < 0.15  # curvature of tangent disks only
+    assert -2.0 < offsets["round"] < -0.8  # in front of the surface, ~1.4 scales

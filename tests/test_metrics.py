@@ -204,3 +204,41 @@ def test_eval_command_on_mesh_files(tmp_path, capsys):
     out = tmp_path / "capped.json"
     assert main(["eval", str(pred), "--gt", str(gt), "--num-samples", "1000", "--max-dist", "0.01", "--out", str(out)]) == 0
     assert json.loads(out.read_text())["chamfer"]["chamfer"] is None
+
+
+def test_uncapped_and_signed_distance_fields():
+    """A sphere of radius 0.95 inside the unit sphere plus a far floater: the cap drops the
+    floater from accuracy, the uncapped mean keeps it; the signed distance is -0.05 (inside)."""
+    import open3d as o3d
+
+    from polargs_plugin.metrics import chamfer_distance
+
+    gt = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=60)
+    pred = o3d.geometry.TriangleMesh.create_sphere(0.95, resolution=60)
+    floater = o3d.geometry.TriangleMesh.create_sphere(0.1, resolution=10).translate((3.0, 0.0, 0.0))
+    out = chamfer_distance(pred + floater, gt, num_samples=40_000, max_dist=0.5)
+    assert out["signed_distance_median"] == pytest.approx(-0.05, abs=3e-3)
+    assert out["inside_fraction"] > 0.95
+    assert out["accuracy_outliers"] > 0 and out["accuracy_uncapped"] > out["accuracy"] + 0.01
+    assert out["completeness_uncapped"] == pytest.approx(out["completeness"])  # nothing dropped GT -> pred
+    assert out["chamfer_uncapped"] == pytest.approx((out["accuracy_uncapped"] + out["completeness_uncapped"]) / 2)
+    assert out["region"] == "all" and out["gt_kept_fraction"] == 1.0
+
+
+def test_object_region_culls_floor_and_unseen_gt():
+    """Region "object" on glossy_plane_sphere: the predicted floor is culled to the sphere's
+    silhouettes and the GT's never-seen bottom is left out of completeness."""
+    from polargs_plugin.data.synthetic import generate_scene
+    from polargs_plugin.metrics import chamfer_distance
+
+    scene = generate_scene("glossy_plane_sphere", num_views=6, width=32, height=32)
+    full = (scene.mesh_vertices, scene.mesh_triangles)
+    obj = scene.object_mesh()
+    assert len(obj[1]) < len(full[1])
+    whole = chamfer_distance(full, obj, num_samples=30_000)  # the floor counts against accuracy
+    region = chamfer_distance(full, obj, num_samples=30_000, cull_views=scene.views, region="object", occluder=full)
+    # Floor that every view imaging it sees behind the sphere survives silhouette culling (a TSDF
+    # mesh has no surface there: nothing is observed); the rest of the floor is culled.
+    assert region["accuracy_uncapped"] < 0.6 * whole["accuracy_uncapped"]
+    assert region["pred_kept_fraction"] < 0.5 and 0.5 < region["gt_kept_fraction"] < 0.95
+    assert region["completeness_uncapped"] < 0.015  # sampling floor of 30 000 samples

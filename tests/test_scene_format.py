@@ -77,8 +77,14 @@ def test_read_scene_round_trips_ground_truth(scene, written):
             assert torch.allclose(got.float(), want.float(), atol=1e-7), name
     assert np.allclose(back.mesh_vertices, scene.mesh_vertices, atol=1e-6)
     assert np.array_equal(back.mesh_triangles, scene.mesh_triangles)
-    mesh = read_gt_mesh(written)
-    assert len(mesh.triangles) == len(scene.mesh_triangles)
+    assert np.array_equal(back.object_triangles, scene.object_triangles)
+    full = read_gt_mesh(written, object_only=False)
+    assert len(full.triangles) == len(scene.mesh_triangles)
+    obj = read_gt_mesh(written)  # gt_mesh.ply: the evaluation ground truth, object only
+    assert len(obj.triangles) == int(scene.object_triangles.sum()) == len(scene.object_mesh()[1])
+    if scene.name == "glossy_plane_sphere":
+        assert len(obj.triangles) < len(full.triangles)  # no floor
+        assert np.linalg.norm(np.asarray(obj.vertices) - [0, 0, 0.5], axis=1).max() < 0.5 + 1e-6
 
 
 def test_png_bit_depth_and_channel_order(written):
@@ -220,6 +226,10 @@ def test_missing_cameras_and_folder(copy, tmp_path):
 def test_missing_mesh(copy):
     (copy / "mesh.ply").unlink()
     with pytest.raises(PolarInputError, match="mesh"):
+        read_gt_mesh(copy, object_only=False)
+    read_gt_mesh(copy)  # gt_mesh.ply is still there
+    (copy / "gt_mesh.ply").unlink()
+    with pytest.raises(PolarInputError, match="mesh.ply"):
         read_gt_mesh(copy)
 
 

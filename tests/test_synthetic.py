@@ -304,3 +304,17 @@ def test_unknown_scene_name():
     with pytest.raises(ValueError, match="glossy_plane_sphere"):
         generate_scene("no_such_scene", num_views=1, width=8, height=8)
     assert len(SCENE_NAMES) >= 3
+
+
+def test_object_mesh_excludes_the_floor():
+    """glossy_plane_sphere: the evaluation GT is the sphere (floor = support); the other scenes
+    are all object."""
+    from polargs_plugin.data.scenes import build_scene
+    from polargs_plugin.data.synthetic import object_submesh
+
+    spec = build_scene("glossy_plane_sphere")
+    vertices, triangles = object_submesh(spec.vertices, spec.triangles, spec.object_mask())
+    assert np.abs(np.linalg.norm(vertices - [0.0, 0.0, 0.5], axis=1) - 0.5).max() < 1e-9
+    assert triangles.max() < len(vertices) and len(triangles) == int((spec.triangle_material == 0).sum())
+    for name in ("shiny_torus", "bumpy_mixed", "torus_knot"):
+        assert build_scene(name).object_mask().all()

@@ -121,6 +121,7 @@ def tsdf_fuse(
     alphas: Sequence[Tensor] | Tensor | None = None,
     alpha_threshold: float | None = None,
     min_views: int = 1,
+    progress: bool = False,
 ) -> o3d.geometry.TriangleMesh:
     """Fuse per-view depth and colour into a triangle mesh (open3d VoxelBlockGrid on CPU).
 
@@ -139,6 +140,7 @@ def tsdf_fuse(
         alphas: optional V accumulated opacities (1, H, W), used with ``alpha_threshold``.
         alpha_threshold: depth is zeroed where alpha < threshold (GOF uses 0.5).
         min_views: voxels integrated from fewer views than this are not meshed.
+        progress: show a tqdm progress bar over the views.
 
     Returns:
         open3d (legacy) TriangleMesh with vertex colours and normals; empty if nothing valid
@@ -165,7 +167,9 @@ def tsdf_fuse(
     )
     trunc_multiplier = float(sdf_trunc) / float(voxel_size)
     integrated = 0
-    for i in range(num):
+    from tqdm import tqdm
+
+    for i in tqdm(range(num), desc="TSDF fusion", unit="view", disable=not progress):
         depth = _numpy(depths[i], np.float32)
         if depth.ndim != 3 or depth.shape[0] != 1:
             raise ValueError(f"tsdf_fuse: depth {i} must be (1, H, W), got {depth.shape}")

@@ -1,17 +1,21 @@
 """Geometry metrics: DTU-style Chamfer distance with F-score, and normal mean angular error.
 
-Chamfer protocol (docs/evaluation.md): both meshes are sampled area-uniformly (seeded); the
-predicted points are optionally culled to the dilated object masks; nearest neighbours come from
-scipy's cKDTree. accuracy = mean distance pred -> GT, completeness = mean distance GT -> pred,
-chamfer = their mean. As in the DTU script, distances above ``max_dist`` are dropped from the
-means (not clipped). F-score at ``fscore_threshold`` uses all points. Distances are in the
-meshes' own units; bring the prediction into the ground truth's frame and scale first.
+Chamfer protocol (docs/evaluation.md): both meshes are sampled area-uniformly (seeded); with
+views given, the evaluation is restricted to the observed object (predicted points culled to
+the dilated object silhouettes, GT points kept where some view sees them); nearest neighbours
+come from scipy's cKDTree. accuracy = mean distance pred -> GT, completeness = mean distance
+GT -> pred, chamfer = their mean. As in the DTU script, distances above ``max_dist`` are dropped
+from the means (not clipped); the same means without the cap are reported as ``*_uncapped``.
+F-score at ``fscore_threshold`` uses all points. The signed distance of the predicted points to
+the GT surface (outside positive) tells a mesh that sits inside from one that sits outside.
+Distances are in the meshes' own units; bring the prediction into the ground truth's frame and
+scale first.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -26,8 +30,12 @@ from polargs_plugin.types import View
 __all__ = [
     "MAX_DIST_FRACTION",
     "FSCORE_FRACTION",
+    "REGIONS",
     "sample_surface",
     "cull_to_masks",
+    "mesh_silhouettes",
+    "visible_from_views",
+    "signed_distances",
     "chamfer_distance",
     "normal_angle_errors",
     "normal_mae",
@@ -38,6 +46,12 @@ __all__ = [
 # the F-score threshold is a tenth of that (2-2.5 mm on DTU; ~0.017 on a unit-radius sphere).
 MAX_DIST_FRACTION = 0.05
 FSCORE_FRACTION = 0.005
+
+#: Evaluation regions of :func:`chamfer_distance` (docs/evaluation.md "Protocol"):
+#: "all" = whole meshes; "masks" = predicted points culled to the views' dilated masks (DTU /
+#: NeuS culling); "object" = predicted points culled to the dilated silhouettes of the GT mesh
+#: (the object) and GT points kept only where some view sees them (default of `polargs eval`).
+REGIONS = ("all", "masks", "object")
 
 MeshLike = o3d.geometry.TriangleMesh | tuple[np.ndarray, np.ndarray]
 
@@ -82,7 +96,13 @@ def sample_surface(mesh: MeshLike, num: int, seed: int = 0) -> np.ndarray:
     return a[face] + r1[:, None] * (b[face] - a[face]) + r2[:, None] * (c[face] - a[face])
 
 
-def cull_to_masks(points: np.ndarray, views: Sequence[View], dilation_px: int = 2) -> np.ndarray:
+def cull_to_masks(
+    points: np.ndarray,
+    views: Sequence[View],
+    dilation_px: int = 2,
+    masks: Sequence[np.ndarray] | None = None,
+    require_seen: bool = False,
+) -> np.ndarray:
     """Which points survive DTU-style mask culling.
 
     A point is kept if, in every view, it is either outside the image (or behind the camera)
@@ -92,16 +112,25 @@ def cull_to_masks(points: np.ndarray, views: Sequence[View], dilation_px: int = 
         points: (N, 3) world points.
         views: views with ``mask`` (1, H, W) bool, ``K`` (pixel centres at +0.5), ``world_to_camera``.
         dilation_px: dilation radius (DTU: 24 px at 1600x1200; NeuS: 50 px).
+        masks: optional (H, W) bool masks to use instead of ``view.mask`` (one per view), e.g.
+            :func:`mesh_silhouettes` of the ground truth.
+        require_seen: also drop points that are inside no view's image.
 
     Returns:
         (N,) bool keep mask.
     """
     points = np.asarray(points, dtype=np.float64)
     keep = np.ones(len(points), dtype=bool)
-    for view in views:
-        if view.mask is None:
+    seen = np.zeros(len(points), dtype=bool)
+    if masks is not None and len(masks) != len(views):
+        raise ValueError(f"cull_to_masks: {len(views)} views but {len(masks)} masks")
+    for index, view in enumerate(views):
+        if masks is not None:
+            mask = np.asarray(masks[index], dtype=np.uint8)
+        elif view.mask is None:
             raise ValueError(f"cull_to_masks: view {view.name!r} has no mask")
-        mask = view.mask[0].detach().cpu().numpy().astype(np.uint8)
+        else:
+            mask = view.mask[0].detach().cpu().numpy().astype(np.uint8)
         if dilation_px > 0:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilation_px + 1, 2 * dilation_px + 1))
             mask = cv2.dilate(mask, disk)
@@ -118,11 +147,112 @@ def cull_to_masks(points: np.ndarray, views: Sequence[View], dilation_px: int = 
         ui = np.clip(u, 0, width - 1).astype(np.int64)
         vi = np.clip(v, 0, height - 1).astype(np.int64)
         keep &= ~inside | (mask[vi, ui] > 0)
-    return keep
+        seen |= inside
+    return keep & seen if require_seen else keep
 
 
 def _nn_distances(query: np.ndarray, target: np.ndarray) -> np.ndarray:
     return cKDTree(target).query(query, k=1, workers=-1)[0]
+
+
+def _raycasting_scene(mesh: MeshLike) -> o3d.t.geometry.RaycastingScene:
+    vertices, triangles = _mesh_arrays(mesh)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+    return scene
+
+
+def _camera(view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    w2c = view.world_to_camera.detach().cpu().numpy().astype(np.float64)
+    K = view.K.detach().cpu().numpy().astype(np.float64)
+    return K, w2c, -w2c[:3, :3].T @ w2c[:3, 3]
+
+
+def mesh_silhouettes(mesh: MeshLike, views: Sequence[View]) -> list[np.ndarray]:
+    """(H, W) bool silhouette of ``mesh`` in each view (ray cast through the pixel centres)."""
+    scene = _raycasting_scene(mesh)
+    out = []
+    for view in views:
+        K, w2c, centre = _camera(view)
+        u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
+        rays_cam = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ np.linalg.inv(K).T
+        dirs = rays_cam @ w2c[:3, :3]  # R^T d for row vectors
+        rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], 1).astype(np.float32)
+        hit = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
+        out.append(hit.reshape(view.height, view.width))
+    return out
+
+
+def visible_from_views(
+    points: np.ndarray, views: Sequence[View], occluder: MeshLike, tolerance: float | None = None
+) -> np.ndarray:
+    """Which points some view sees: inside its image, in front of it and not hidden by ``occluder``.
+
+    A point is hidden in a view when the ray from the camera centre towards it hits
+    ``occluder`` more than ``tolerance`` before reaching it (exact ray casting, no depth maps).
+
+    Args:
+        points: (N, 3) world points, usually samples of ``occluder`` itself.
+        views: cameras (``K``, ``world_to_camera``, image size).
+        occluder: mesh that can hide points (the GT, or the whole scene with floor).
+        tolerance: None = 1e-4 x the occluder's bounding-box diagonal.
+
+    Returns:
+        (N,) bool.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    vertices, _ = _mesh_arrays(occluder)
+    if tolerance is None:
+        tolerance = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    scene = _raycasting_scene(occluder)
+    seen = np.zeros(len(points), dtype=bool)
+    for view in views:
+        todo = np.flatnonzero(~seen)
+        if len(todo) == 0:
+            break
+        K, w2c, centre = _camera(view)
+        cam = points[todo] @ w2c[:3, :3].T + w2c[:3, 3]
+        z = cam[:, 2]
+        front = z > 1e-9
+        zs = np.where(front, z, 1.0)
+        u = K[0, 0] * cam[:, 0] / zs + K[0, 1] * cam[:, 1] / zs + K[0, 2]
+        v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+        inside = front & (u >= 0) & (u < view.width) & (v >= 0) & (v < view.height)
+        idx = todo[inside]
+        if len(idx) == 0:
+            continue
+        offset = points[idx] - centre
+        length = np.linalg.norm(offset, axis=1)
+        rays = np.concatenate([np.broadcast_to(centre, offset.shape), offset / length[:, None]], 1).astype(np.float32)
+        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        seen[idx] = ~(t_hit < length - tolerance)
+    return seen
+
+
+def signed_distances(points: np.ndarray, mesh: MeshLike) -> np.ndarray:
+    """Exact distance of each point to ``mesh``, positive on the side its triangles face.
+
+    For an outward-oriented closed GT mesh (the bundled scenes' ``gt_mesh.ply``) positive means
+    outside the object, negative inside. The closest point comes from open3d's
+    ``RaycastingScene.compute_closest_points`` (float32: about 1e-7 relative).
+
+    Args:
+        points: (N, 3).
+        mesh: triangle mesh.
+
+    Returns:
+        (N,) float64.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) == 0:
+        return np.zeros(0)
+    result = _raycasting_scene(mesh).compute_closest_points(o3d.core.Tensor(points.astype(np.float32)))
+    closest = result["points"].numpy().astype(np.float64)
+    normals = result["primitive_normals"].numpy().astype(np.float64)
+    offset = points - closest
+    distance = np.linalg.norm(offset, axis=1)
+    sign = np.sign(np.einsum("ij,ij->i", offset, normals))
+    return distance * np.where(sign == 0, 1.0, sign)
 
 
 def chamfer_distance(
@@ -135,8 +265,11 @@ def chamfer_distance(
     cull_views: Sequence[View] | None = None,
     cull_dilation_px: int = 2,
     units: str = "scene units",
-) -> dict[str, float | int | str]:
-    """DTU-style Chamfer distance and F-score between a predicted and a ground-truth mesh.
+    region: str | None = None,
+    occluder: MeshLike | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, float | int | str | bool]:
+    """DTU-style Chamfer distance, F-score and signed distance between a predicted and a GT mesh.
 
     Args:
         pred, gt: open3d TriangleMesh or (vertices (V, 3), triangles (F, 3)), same frame and units.
@@ -146,17 +279,37 @@ def chamfer_distance(
             None = ``MAX_DIST_FRACTION`` x GT bounding-box diagonal.
         fscore_threshold: distance under which a point counts as matched.
             None = ``FSCORE_FRACTION`` x GT bounding-box diagonal.
-        cull_views: if given, predicted points outside these views' dilated masks are dropped
-            first (:func:`cull_to_masks`).
-        cull_dilation_px: mask dilation radius for culling, in pixels.
+        cull_views: views (cameras, and masks for region "masks") for the region restriction.
+        cull_dilation_px: mask / silhouette dilation radius for culling, in pixels.
         units: label of the distance unit, copied to the output.
+        region: one of :data:`REGIONS`; None = "masks" when ``cull_views`` is given, else "all".
+            "object" culls the predicted points to the dilated silhouettes of ``gt`` (and to the
+            images: a point no camera sees is dropped) and keeps the GT points that some view sees (:func:`visible_from_views`, hidden by
+            ``occluder``).
+        occluder: geometry that hides GT points for region "object" (e.g. the whole scene with
+            its floor); None = ``gt`` itself.
+        progress: called with the name of each step before it starts (for progress bars).
 
     Returns:
-        dict with accuracy, completeness, chamfer (means of kept distances; NaN if all were
-        dropped), precision, recall, fscore, the fractions of dropped distances
-        (accuracy_outliers, completeness_outliers), max_dist, fscore_threshold, units,
-        num_pred_points (after culling), num_gt_points, seed.
+        dict (distances in ``units``):
+
+        - accuracy, completeness, chamfer: means of the distances <= max_dist (NaN if all were
+          dropped); accuracy_uncapped, completeness_uncapped, chamfer_uncapped: the same means
+          over all points; accuracy_outliers, completeness_outliers: the fractions of
+          predicted / GT points the cap dropped;
+        - precision, recall, fscore at fscore_threshold;
+        - signed_distance_median, signed_distance_mean: signed distance of the predicted points
+          to the GT surface (:func:`signed_distances`, outside positive), inside_fraction: the
+          fraction of predicted points with a negative one;
+        - max_dist, fscore_threshold, units, region, culled, num_pred_points and num_gt_points
+          (after the region restriction), pred_kept_fraction, gt_kept_fraction, seed.
     """
+    step = progress or (lambda name: None)
+    region = ("masks" if cull_views is not None else "all") if region is None else region
+    if region not in REGIONS:
+        raise ValueError(f"region must be one of {REGIONS}, got {region!r}")
+    if region != "all" and not cull_views:
+        raise ValueError(f"region {region!r} needs views (cull_views)")
     gt_vertices, _ = _mesh_arrays(gt)
     diagonal = float(np.linalg.norm(gt_vertices.max(0) - gt_vertices.min(0)))
     max_dist = MAX_DIST_FRACTION * diagonal if max_dist is None else float(max_dist)
@@ -164,21 +317,36 @@ def chamfer_distance(
     if not (max_dist > 0 and fscore_threshold > 0):
         raise ValueError(f"max_dist and fscore_threshold must be positive, got {max_dist}, {fscore_threshold}")
 
+    step("sampling")
     gt_points = sample_surface(gt, num_samples, seed)
     pred_points = sample_surface(pred, num_samples, seed + 1)
-    if cull_views is not None:
+    num_gt_total, num_pred_total = len(gt_points), len(pred_points)
+    if region == "masks":
+        step("culling to the view masks")
         pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px)]
-        if len(pred_points) == 0:
-            raise ValueError("chamfer_distance: every predicted point lies outside the masks")
+    elif region == "object":
+        step("culling to the object silhouettes")
+        silhouettes = mesh_silhouettes(gt, cull_views)
+        pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px, masks=silhouettes, require_seen=True)]
+        step("GT visibility")
+        gt_points = gt_points[visible_from_views(gt_points, cull_views, gt if occluder is None else occluder)]
+        if len(gt_points) == 0:
+            raise ValueError("chamfer_distance: no view sees the ground-truth mesh (cameras and mesh in different frames?)")
+    if len(pred_points) == 0:
+        raise ValueError("chamfer_distance: every predicted point lies outside the masks")
 
+    step("nearest neighbours")
     to_gt = _nn_distances(pred_points, gt_points)
     to_pred = _nn_distances(gt_points, pred_points)
+    step("signed distance")
+    signed = signed_distances(pred_points, gt)
 
     def kept_mean(d: np.ndarray) -> float:
         kept = d[d <= max_dist]
         return float(kept.mean()) if len(kept) else math.nan
 
     accuracy, completeness = kept_mean(to_gt), kept_mean(to_pred)
+    accuracy_all, completeness_all = float(to_gt.mean()), float(to_pred.mean())
     precision = float((to_gt < fscore_threshold).mean())
     recall = float((to_pred < fscore_threshold).mean())
     fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
@@ -186,16 +354,26 @@ def chamfer_distance(
         "accuracy": accuracy,
         "completeness": completeness,
         "chamfer": (accuracy + completeness) / 2,
+        "accuracy_uncapped": accuracy_all,
+        "completeness_uncapped": completeness_all,
+        "chamfer_uncapped": (accuracy_all + completeness_all) / 2,
         "precision": precision,
         "recall": recall,
         "fscore": fscore,
         "accuracy_outliers": float((to_gt > max_dist).mean()),
         "completeness_outliers": float((to_pred > max_dist).mean()),
+        "signed_distance_median": float(np.median(signed)),
+        "signed_distance_mean": float(signed.mean()),
+        "inside_fraction": float((signed < 0).mean()),
         "max_dist": max_dist,
         "fscore_threshold": fscore_threshold,
         "units": units,
+        "region": region,
+        "culled": region != "all",
         "num_pred_points": int(len(pred_points)),
         "num_gt_points": int(len(gt_points)),
+        "pred_kept_fraction": len(pred_points) / num_pred_total,
+        "gt_kept_fraction": len(gt_points) / num_gt_total,
         "seed": int(seed),
     }
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,25 @@ Presets (scene units): paper = 0.008 / 0.04 / 10 (PolarGS); synthetic = 1/128 / 
 objects of radius ~1 seen from distance ~3 at 128 px. --voxel alone keeps the preset's
 truncation-to-voxel ratio. See docs/evaluation.md.
 """
+
+
+class CommandError(SystemExit):
+    """An ordinary error of ``polargs mesh`` / ``eval`` / ``check``, already printed as one
+    ``error: FILE: problem`` line; exit status 2. ``str()`` is the message, so callers that
+    catch it (the ablation grid) can log it."""
+
+    def __init__(self, message: str):
+        super().__init__(2)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+def fail(message: str) -> CommandError:
+    """Print ``error: message`` to stderr (no traceback) and return the exception to raise."""
+    print(f"error: {message}", file=sys.stderr)
+    return CommandError(message)
 
 
 def load_run(run_dir: Path) -> tuple[Any, list]:
@@ -80,11 +100,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="drop connected pieces with fewer triangles than FRACTION of the largest "
                         "(default 0.05; 1 keeps only the largest, 0 keeps all)")
     parser.add_argument("--out", type=Path, help=f"output mesh (default RUN_DIR/{MESH_FILE})")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Render, fuse, write the mesh and a JSON sidecar with the settings used."""
+    """Render, fuse, write the mesh and a JSON sidecar with the settings used.
+
+    Ordinary errors are printed as one ``error: FILE: problem`` line and raise
+    :class:`CommandError` (exit status 2).
+    """
+    from polargs_plugin.io import PolarInputError
+
+    try:
+        return _run(args)
+    except PolarInputError as err:
+        raise fail(str(err)) from None
+
+
+def _run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
@@ -94,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = mesh_settings(args.preset, args.voxel, args.sdf_trunc, args.depth_trunc)
     except ValueError as err:
-        raise SystemExit(f"polargs mesh: {err}") from None
+        raise PolarInputError(args.run_dir, f"bad TSDF settings: {err}") from None
     if not args.run_dir.is_dir():
         raise PolarInputError(args.run_dir, "run folder not found")
     start = time.perf_counter()
@@ -102,11 +136,11 @@ def run(args: argparse.Namespace) -> int:
 
     depths, colors, Ks, w2cs, masks, alphas = [], [], [], [], [], []
     with torch.no_grad():
-        for view in tqdm(views, desc="rendering", unit="view"):
+        for view in tqdm(views, desc="rendering", unit="view", disable=getattr(args, "quiet", False)):
             out = model.render(view)
             depth = out.median_depth if args.depth == "median" else out.depth
             if depth is None:
-                raise SystemExit("polargs mesh: the renderer returns no median depth; use --depth expected")
+                raise PolarInputError(args.run_dir, "the renderer returns no median depth; use --depth expected")
             depths.append(depth.cpu())
             colors.append(out.color.clamp(0, 1).cpu())
             alphas.append(out.alpha.cpu())
@@ -115,11 +149,14 @@ def run(args: argparse.Namespace) -> int:
             w2cs.append(view.world_to_camera)
     threshold = args.alpha_threshold if args.alpha_threshold > 0 else None
     mesh = tsdf_fuse(depths, colors, Ks, w2cs, masks=masks, keep_largest=args.min_cluster if args.min_cluster > 0 else False,
-                     alphas=alphas, alpha_threshold=threshold, **settings)
+                     alphas=alphas, alpha_threshold=threshold, progress=not getattr(args, "quiet", False), **settings)
     if len(mesh.triangles) == 0:
-        raise SystemExit("polargs mesh: the fused mesh is empty (check depth truncation, masks and alpha threshold)")
+        raise PolarInputError(args.run_dir, "the fused mesh is empty (check depth truncation, masks and alpha threshold)")
     out_path = args.out or args.run_dir / MESH_FILE
-    write_mesh(out_path, mesh)
+    try:
+        write_mesh(out_path, mesh)
+    except OSError as err:
+        raise PolarInputError(out_path, f"cannot write the mesh ({err.strerror or err})") from None
     info = {
         "run_dir": str(args.run_dir),
         "preset": args.preset,

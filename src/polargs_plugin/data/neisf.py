@@ -21,11 +21,18 @@ Conversions made by :func:`read_neisf`:
   as Mitsuba 3, counter-clockwise).
 - Channels: EXR channels are read by name (R, G, B); mask PNG from BGR, its first (R) channel.
 - Near/far bounds are ignored.
+- Poses: NeISF refuses cameras farther than 1.1 x its bounding-sphere radius 3 from the origin
+  (its ``preprocess_camera_normalization.py`` rescales them first). Such poses are read as they
+  are, with a warning (:data:`NEISF_BOUNDING_RADIUS`).
+- GT normals (optional, ``normals/img_XXX.png``, 16-bit, n = 2 v / 65535 - 1 as in NeISF's
+  ``compute_metrics.py``): frame told from the silhouettes and converted to the OpenCV camera
+  frame, as for NeRSP (:func:`~polargs_plugin.data.nersp.load_normal_gt`).
 """
 
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +53,9 @@ NEISF_PIXEL_CENTER_OFFSET = 0.0
 
 NEISF_MASK_THRESHOLD = 0.999
 """A mask pixel is valid where value / 65535 exceeds this (as NeISF)."""
+
+NEISF_BOUNDING_RADIUS = 3.0
+"""NeISF's bounding-sphere radius; its loader refuses camera centres beyond 1.1 x this."""
 
 NEISF_NEAR_FAR = (0.0, 6.0)
 """Bounds written into poses_bounds.npy: NeISF's fixed near 0 and far 2 x its sphere radius 3."""
@@ -74,7 +84,15 @@ def read_neisf(folder: str | os.PathLike) -> list[View]:
     num_s0 = len(list((folder / "images_s0").glob("*.exr")))
     if num_s0 != len(poses):
         raise PolarInputError(folder / "images_s0", f"{num_s0} EXR files for {len(poses)} poses")
-    views = []
+    centres = np.linalg.norm(poses[:, :, 3], axis=1)
+    if centres.max() > NEISF_BOUNDING_RADIUS * 1.1:
+        warnings.warn(
+            f"{poses_path}: camera centres up to {centres.max():.3g} from the origin, outside NeISF's normalisation "
+            f"(<= {NEISF_BOUNDING_RADIUS * 1.1:.3g}, sphere of radius {NEISF_BOUNDING_RADIUS:g}); NeISF itself refuses these "
+            "poses until preprocess_camera_normalization.py rescales them. Read as they are.",
+            stacklevel=2,
+        )
+    views, frames = [], set()
     for index, pose in enumerate(poses):
         name = _image_name(index)
         height, width, focal = pose[:, 4]
@@ -102,6 +120,13 @@ def read_neisf(folder: str | os.PathLike) -> list[View]:
                 raise PolarInputError(mask_path, f"size {values.shape[:2]} differs from the Stokes {stokes.shape[-2:]}")
             first = values if values.ndim == 2 else values[..., 0]
             mask = torch.from_numpy(first / 65535.0 > NEISF_MASK_THRESHOLD)[None]
+        normal_gt = None
+        normal_path = folder / "normals" / f"{name}.png"
+        if normal_path.is_file():
+            from polargs_plugin.data.nersp import load_normal_gt
+
+            normal_gt, frame = load_normal_gt(normal_path, mask, w2c, tuple(stokes.shape[-2:]))
+            frames.add(frame)
         views.append(
             View(
                 name=name,
@@ -109,9 +134,13 @@ def read_neisf(folder: str | os.PathLike) -> list[View]:
                 world_to_camera=torch.from_numpy(w2c),
                 stokes=torch.from_numpy(stokes),
                 mask=mask,
+                normal_gt=normal_gt,
                 source=str(folder),
             )
         )
+    if frames - {"opencv"}:
+        warnings.warn(f"{folder}: GT normal maps stored in the {'/'.join(sorted(frames))} frame; converted to the "
+                      "OpenCV camera frame (told from the silhouettes)", stacklevel=2)
     return views
 
 

@@ -7,7 +7,8 @@ Layout (one object folder)::
     s0/0000.npy s1/ s2/              float (H, W, 3) RGB Stokes
     input_azimuth_maps/0000.png      16-bit RGBA: AoLP * 65535 / pi, alpha = object mask
                                      (PolGS: train_input_azimuth_maps/)
-    image/0000.png                   8-bit RGB picture (PolGS: train/); not needed to build views
+    image/0000.png                   8-bit RGB picture (PolGS: train/); used only to check the Stokes scale
+    normal/0000.npy                  optional GT normals (H, W, 3) float (also normals/, .exr, 16-bit .png)
 
 Conversions made by :func:`read_nersp`:
 
@@ -20,9 +21,18 @@ Conversions made by :func:`read_nersp`:
 - Stokes: multiplied by :data:`NERSP_STOKES_FACTOR` = 1. The stored s0 is the full intensity
   (Mitsuba 3's s0; the real data's (I0+I45+I90+I135)/2), which is our s0. NeRSP's loader halves
   all three, which gives its own half-intensity radiance, i.e. our training colour s0 / 2; PolGS
-  does not halve. DoLP and AoLP do not depend on this factor.
-- AoLP direction: none. The stored s1, s2 are Mitsuba 3 Stokes with basis x = image right,
-  y = image up, which is our counter-clockwise convention.
+  does not halve. DoLP and AoLP do not depend on this factor. When ``image/`` holds the 8-bit
+  picture of a view, the scale is checked against it (:func:`~polargs_plugin.data.checks.image_scale_ratio`
+  on the first :data:`SCALE_CHECK_VIEWS` views) and a mismatch beyond 25 % is warned about.
+- AoLP direction: none. NeRSP and PolGS fit the stored s1, s2 with PANDORA's Stokes model, whose
+  reference frame (x_o horizontal, y_o = x_o x o pointing down for an upright camera) gives a
+  diffuse AoLP counter-clockwise from image +x towards image up, our convention. (NeRSP's
+  tangent vectors r1 sin a - r2 cos a treat the azimuth maps as clockwise with y down; the
+  maps are not used here.) ``polargs check`` tests the direction on the data's silhouettes.
+- GT normals (optional, ``normal/`` or ``normals/``, ``.npy`` / ``.exr`` float or 16-bit PNG
+  coding n = 2 v / 65535 - 1): the frame (OpenCV camera, OpenGL camera or world) is told from
+  the silhouettes (:func:`~polargs_plugin.data.checks.orient_normal_map`) and converted to the
+  OpenCV camera frame; a frame other than OpenCV is reported with a warning.
 - Channels: ``.npy`` arrays are RGB already; PNGs are converted from OpenCV's BGR(A).
 - Mask: alpha of the azimuth map, valid where non-zero (as NeRSP's ``astype(bool)``).
 """
@@ -30,6 +40,7 @@ Conversions made by :func:`read_nersp`:
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +60,13 @@ from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.optics.stokes import aolp_from_stokes
 from polargs_plugin.types import View
 
-__all__ = ["NERSP_STOKES_FACTOR", "AZIMUTH_MAP_SCALE", "read_nersp", "write_nersp"]
+__all__ = ["NERSP_STOKES_FACTOR", "AZIMUTH_MAP_SCALE", "NORMAL_DIRS", "SCALE_CHECK_VIEWS", "read_nersp", "write_nersp"]
+
+NORMAL_DIRS = ("normal", "normals")
+"""Folders searched, in order, for GT normal maps ``<stem>.npy`` / ``.exr`` / ``.png``."""
+
+SCALE_CHECK_VIEWS = 3
+"""Number of views whose 8-bit picture is compared with the Stokes scale."""
 
 NERSP_STOKES_FACTOR = 1.0
 """Stored NeRSP/PolGS ``.npy`` Stokes times this factor = our Stokes (s0 = full intensity)."""
@@ -72,17 +89,61 @@ def _camera_keys(arrays: dict[str, np.ndarray], path: Path) -> tuple[str, int]:
     raise PolarInputError(path, "has neither world_mat_0 (NeRSP, 0-based) nor world_mat_01 (PolGS, 1-based)")
 
 
-def read_nersp(folder: str | os.PathLike, normalize: bool = True) -> list[View]:
+def _normal_file(folder: Path, stem: str) -> Path | None:
+    for sub in NORMAL_DIRS:
+        for suffix in (".npy", ".exr", ".png"):
+            path = folder / sub / f"{stem}{suffix}"
+            if path.is_file():
+                return path
+    return None
+
+
+def read_normal_map(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """(3, H, W) float64 normals as stored (``.npy``/``.exr`` float, PNG coded 2 v / max - 1)."""
+    from polargs_plugin.data.imageio_utils import UINT_MAX, read_exr
+
+    if path.suffix == ".npy":
+        values = read_npy(path).astype(np.float64)
+    elif path.suffix == ".exr":
+        values = read_exr(path).astype(np.float64)
+    else:
+        raw = read_image(path)
+        values = raw.astype(np.float64) / UINT_MAX[raw.dtype] * 2.0 - 1.0
+    if values.ndim != 3 or values.shape[2] < 3 or values.shape[:2] != shape:
+        raise PolarInputError(path, f"normal map has shape {values.shape}, expected ({shape[0]}, {shape[1]}, 3)")
+    if not np.isfinite(values[..., :3]).all():
+        raise PolarInputError(path, "normal map has NaN or infinite values")
+    return values[..., :3].transpose(2, 0, 1)
+
+
+def load_normal_gt(path: Path, mask: torch.Tensor | None, w2c: np.ndarray, shape: tuple[int, int]) -> tuple[torch.Tensor, str]:
+    """GT normals of one view in the OpenCV camera frame, and the frame they were stored in."""
+    from polargs_plugin.data.checks import orient_normal_map
+
+    raw = read_normal_map(path, shape)
+    valid = np.linalg.norm(raw, axis=0) > 0.5
+    region = valid if mask is None else (mask[0].numpy() & valid)
+    if not region.any():
+        raise PolarInputError(path, "normal map is empty inside the object mask")
+    normals, frame, score = orient_normal_map(raw, region, w2c)
+    if score < 0.3:
+        raise PolarInputError(path, f"cannot tell the frame of the normal map (best: {frame}, silhouette agreement {score:.2f})")
+    return torch.from_numpy(normals), frame
+
+
+def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: bool = True) -> list[View]:
     """Read an SMVP3D/RMVP3D object folder (NeRSP or PolGS layout) into views.
 
     Args:
         folder: the object folder holding ``cameras.npz`` and ``s0/ s1/ s2/``.
         normalize: cameras in the unit-sphere frame (world_mat @ scale_mat, as NeRSP/PolGS
             train) if True, in the capture frame (world_mat) if False.
+        check_scale: compare the Stokes with the 8-bit pictures and warn on a mismatch.
 
     Returns:
         One :class:`View` per ``s0/*.npy`` (sorted), named by the file stem; ``stokes``
-        (3, 3, H, W), ``mask`` (1, H, W) from the azimuth map's alpha when that folder exists.
+        (3, 3, H, W), ``mask`` (1, H, W) from the azimuth map's alpha when that folder exists,
+        ``normal_gt`` (3, H, W) OpenCV camera frame when a normal map exists.
     """
     folder = Path(folder)
     npz_path = folder / "cameras.npz"
@@ -94,7 +155,7 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True) -> list[View]:
     stems = sorted(p.stem for p in (folder / "s0").glob("*.npy"))
     if not stems:
         raise PolarInputError(folder / "s0", "no .npy Stokes files")
-    views = []
+    views, frames = [], set()
     for stem in stems:
         if not stem.isdigit():
             raise PolarInputError(folder / "s0" / f"{stem}.npy", "file name is not a view index like 0000.npy")
@@ -111,6 +172,21 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True) -> list[View]:
             if azimuth.shape[:2] != stokes.shape[-2:]:
                 raise PolarInputError(mask_path, f"size {azimuth.shape[:2]} differs from the Stokes {stokes.shape[-2:]}")
             mask = torch.from_numpy(azimuth[..., -1] > 0)[None]
+        normal_gt = None
+        normal_path = _normal_file(folder, stem)
+        if normal_path is not None:
+            normal_gt, frame = load_normal_gt(normal_path, mask, w2c, tuple(stokes.shape[-2:]))
+            frames.add(frame)
+        if check_scale and len(views) < SCALE_CHECK_VIEWS:
+            picture = next((folder / lay["image"] / f"{stem}.png" for lay in _LAYOUTS.values()
+                            if (folder / lay["image"] / f"{stem}.png").is_file()), None)
+            if picture is not None:
+                from polargs_plugin.data.checks import warn_image_scale
+
+                image = read_image(picture)
+                if image.dtype == np.uint8 and image.shape[:2] == stokes.shape[-2:]:
+                    warn_image_scale(str(picture), stokes, image[..., :3] if image.ndim == 3 else image,
+                                     None if mask is None else mask[0].numpy())
         views.append(
             View(
                 name=stem,
@@ -118,9 +194,13 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True) -> list[View]:
                 world_to_camera=torch.from_numpy(w2c),
                 stokes=torch.from_numpy(stokes),
                 mask=mask,
+                normal_gt=normal_gt,
                 source=str(folder),
             )
         )
+    if frames - {"opencv"}:
+        warnings.warn(f"{folder}: GT normal maps stored in the {'/'.join(sorted(frames))} frame; converted to the "
+                      "OpenCV camera frame (told from the silhouettes)", stacklevel=2)
     return views
 
 
@@ -141,7 +221,8 @@ def write_nersp(
             if None. The views' cameras are taken to be in the unit-sphere frame.
 
     Returns:
-        ``folder``. ``image/`` holds sRGB 8-bit pictures of s0 / 2 clipped to [0, 1].
+        ``folder``. ``image/`` holds sRGB 8-bit pictures of s0 / 2 clipped to [0, 1];
+        ``normal/`` the views' GT normals (OpenCV camera frame, ``.npy``) when they have them.
     """
     if variant not in _LAYOUTS:
         raise ValueError(f"variant must be one of {sorted(_LAYOUTS)}, got {variant!r}")
@@ -156,6 +237,8 @@ def write_nersp(
         for name, plane in zip(("s0", "s1", "s2"), stokes):
             write_npy(folder / name / f"{stem}.npy", to_hwc(plane))
         write_png(folder / layout["image"] / f"{stem}.png", linear_to_srgb(to_hwc(view.image.cpu())), 8)
+        if view.normal_gt is not None:
+            write_npy(folder / NORMAL_DIRS[0] / f"{stem}.npy", to_hwc(view.normal_gt.detach().cpu().float()))
         aolp = aolp_from_stokes(view.stokes.detach().cpu().mean(dim=1, keepdim=True))[0].numpy()
         code = np.rint(aolp * AZIMUTH_MAP_SCALE).astype(np.uint16)
         alpha = np.full_like(code, 65535) if view.mask is None else view.mask[0].cpu().numpy().astype(np.uint16) * 65535

@@ -22,6 +22,8 @@ Conversions made by :func:`read_pandora`:
 - Cameras: as NeRSP (IDR P = world_mat @ scale_mat, ``cv2.decomposeProjectionMatrix``,
   :data:`~polargs_plugin.data.cameras.IDR_PIXEL_CENTER_OFFSET`).
 - Mask: first channel above half of full scale.
+- Scale check: the 8-bit ``images/<name>.png`` of the first views is compared with s0 / 2
+  (:func:`~polargs_plugin.data.checks.image_scale_ratio`); a mismatch beyond 25 % is warned about.
 """
 
 from __future__ import annotations
@@ -58,7 +60,7 @@ _NEGATIVE_TOLERANCE = 1e-6
 """Relative float rounding below zero tolerated in s0 + s1, s0 + s2 when writing."""
 
 
-def read_pandora(folder: str | os.PathLike, normalize: bool = True) -> list[View]:
+def read_pandora(folder: str | os.PathLike, normalize: bool = True, check_scale: bool = True) -> list[View]:
     """Read a PANDORA scene folder into views.
 
     Args:
@@ -90,6 +92,14 @@ def read_pandora(folder: str | os.PathLike, normalize: bool = True) -> list[View
                 raise PolarInputError(mask_paths[0], f"size {values.shape[:2]} differs from the Stokes {stokes.shape[-2:]}")
             first = values if values.ndim == 2 else values[..., 0]
             mask = torch.from_numpy(first > UINT_MAX[values.dtype] / 2)[None]
+        picture = folder / "images" / f"{name}.png"
+        if check_scale and len(views) < 3 and picture.is_file():
+            from polargs_plugin.data.checks import warn_image_scale
+
+            image = read_image(picture)
+            if image.dtype == np.uint8 and image.shape[:2] == stokes.shape[-2:]:
+                warn_image_scale(str(picture), stokes, image[..., :3] if image.ndim == 3 else image,
+                                 None if mask is None else mask[0].numpy())
         views.append(
             View(
                 name=name,

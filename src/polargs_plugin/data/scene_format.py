@@ -13,7 +13,8 @@ Layout (docs/dataset-format.md has the full description)::
       specular/<view>.npy           float32 (H, W, 3) GT specular colour
       highlights/<view>.png         8-bit highlight mask
       overexposed/<view>.png        8-bit overexposure mask
-      mesh.ply                      GT mesh, world frame
+      mesh.ply                      GT mesh of the whole scene (object + floor), world frame
+      gt_mesh.ply                   evaluation GT: the object only (docs/evaluation.md)
 
 Every file is written atomically and ``cameras.json`` is written last, so a folder that has it
 is complete. Readers validate everything and raise :class:`~polargs_plugin.io.PolarInputError`
@@ -32,7 +33,7 @@ import open3d as o3d
 import torch
 from torch import Tensor
 
-from polargs_plugin.data.synthetic import SyntheticScene
+from polargs_plugin.data.synthetic import SyntheticScene, mask_from_ranges, triangle_ranges
 from polargs_plugin.io import PolarInputError, atomic_path, atomic_write
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, stokes_from_intensities
 from polargs_plugin.types import View
@@ -46,6 +47,8 @@ __all__ = [
     "read_scene",
     "read_gt_mesh",
     "is_scene_folder",
+    "MESH_FILE",
+    "GT_MESH_FILE",
 ]
 
 FORMAT_NAME = "polargs-scene"
@@ -53,6 +56,7 @@ FORMAT_VERSION = 1
 CAMERAS_FILE = "cameras.json"
 META_FILE = "scene.json"
 MESH_FILE = "mesh.ply"
+GT_MESH_FILE = "gt_mesh.ply"
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 _ROTATION_TOL = 1e-5
 
@@ -132,15 +136,22 @@ def write_scene(scene: SyntheticScene, folder: str | Path) -> Path:
                 "world_to_camera": view.world_to_camera.to(torch.float64).tolist(),
             }
         )
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(np.asarray(scene.mesh_vertices, np.float64)),
-        o3d.utility.Vector3iVector(np.asarray(scene.mesh_triangles, np.int32)),
-    )
-    with atomic_path(folder / MESH_FILE) as tmp:
-        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
-            raise OSError(f"{folder / MESH_FILE}: open3d could not write the mesh")
+    for name, (vertices, triangles) in (
+        (MESH_FILE, (scene.mesh_vertices, scene.mesh_triangles)),
+        (GT_MESH_FILE, scene.object_mesh()),
+    ):
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
+            o3d.utility.Vector3iVector(np.asarray(triangles, np.int32)),
+        )
+        with atomic_path(folder / name) as tmp:
+            if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
+                raise OSError(f"{folder / name}: open3d could not write the mesh")
     with atomic_write(folder / META_FILE) as handle:
-        json.dump({"name": scene.name, **scene.meta}, handle, indent=2)
+        meta = {"name": scene.name, **scene.meta}
+        if scene.object_triangles is not None:
+            meta["object_triangles"] = triangle_ranges(scene.object_triangles)
+        json.dump(meta, handle, indent=2)
     header = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -347,13 +358,22 @@ def read_scene_folder(folder: str | Path) -> list[View]:
     return _read_views(folder, _read_header(folder))[0]
 
 
-def read_gt_mesh(folder: str | Path) -> o3d.geometry.TriangleMesh:
-    """The ground-truth mesh ``mesh.ply`` of a scene folder (world frame).
+def read_gt_mesh(folder: str | Path, object_only: bool = True) -> o3d.geometry.TriangleMesh:
+    """A ground-truth mesh of a scene folder (world frame).
+
+    Args:
+        folder: the scene folder.
+        object_only: the evaluation ground truth ``gt_mesh.ply`` (the object without floor or
+            backdrop; folders written before it existed fall back to ``mesh.ply``) if True,
+            the whole scene ``mesh.ply`` if False.
 
     Raises:
         PolarInputError: the file is missing, unreadable or has no triangles.
     """
-    path = Path(folder) / MESH_FILE
+    folder = Path(folder)
+    path = folder / MESH_FILE
+    if object_only and (folder / GT_MESH_FILE).is_file():
+        path = folder / GT_MESH_FILE
     if not path.is_file():
         raise PolarInputError(path, "missing ground-truth mesh")
     mesh = o3d.io.read_triangle_mesh(str(path))
@@ -383,7 +403,12 @@ def read_scene(folder: str | Path) -> SyntheticScene:
         raise PolarInputError(meta_path, f"unreadable JSON ({err})") from None
     if not isinstance(meta, dict):
         raise PolarInputError(meta_path, "scene meta must be a JSON object")
-    mesh = read_gt_mesh(folder)
+    mesh = read_gt_mesh(folder, object_only=False)
+    ranges = meta.get("object_triangles")
+    try:
+        object_triangles = None if ranges is None else mask_from_ranges(ranges, len(mesh.triangles))
+    except (TypeError, ValueError) as err:
+        raise PolarInputError(meta_path, f"bad object_triangles ({err})") from None
 
     def npy(sub: str, name: str, what: str) -> Tensor:
         path = folder / sub / f"{name}.npy"
@@ -402,4 +427,5 @@ def read_scene(folder: str | Path) -> SyntheticScene:
         mesh_vertices=np.asarray(mesh.vertices, dtype=np.float64),
         mesh_triangles=np.asarray(mesh.triangles, dtype=np.int64),
         meta=meta,
+        object_triangles=object_triangles,
     )

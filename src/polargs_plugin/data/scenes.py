@@ -115,6 +115,9 @@ class SceneSpec:
         fov_deg: horizontal field of view of the cameras.
         elevations_deg: (min, max) camera elevation above the target's horizontal plane.
         background: mean level of the dim unpolarized backdrop (training-colour units).
+        object_triangles: (F,) bool, True for the triangles of the object being reconstructed,
+            False for supporting geometry (floor, backdrop); None means every triangle is object.
+            The evaluation ground truth (``gt_mesh.ply``, docs/evaluation.md) is the object part.
     """
 
     name: str
@@ -131,6 +134,16 @@ class SceneSpec:
     fov_deg: float
     elevations_deg: tuple[float, float]
     background: float = 0.04
+    object_triangles: np.ndarray | None = None
+
+    def object_mask(self) -> np.ndarray:
+        """(F,) bool: which triangles belong to the object (all of them when not specified)."""
+        if self.object_triangles is None:
+            return np.ones(len(self.triangles), dtype=bool)
+        mask = np.asarray(self.object_triangles, dtype=bool)
+        if mask.shape != (len(self.triangles),):
+            raise ValueError(f"object_triangles must have one entry per triangle ({len(self.triangles)}), got {mask.shape}")
+        return mask
 
 
 # ---------------------------------------------------------------------------------------------
@@ -337,6 +350,7 @@ def _glossy_plane_sphere() -> SceneSpec:
         camera_distance=3.0,
         fov_deg=40.0,
         elevations_deg=(20.0, 50.0),
+        object_triangles=mats == 0,  # the sphere; the floor plane is support, not evaluated
     )
 
 

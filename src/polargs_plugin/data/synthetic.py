@@ -55,6 +55,7 @@ __all__ = [
     "SceneRenderer",
     "apply_sensor",
     "generate_scene",
+    "object_submesh",
 ]
 
 SCENE_NAMES: tuple[str, ...] = tuple(SCENE_BUILDERS)
@@ -112,9 +113,12 @@ class SyntheticScene:
         specular_gt: per view (3, H, W) float32 true specular colour (0 outside the mask).
         highlight_masks: per view (1, H, W) bool, mask & mean_c specular_gt >= highlight threshold.
         overexposed_masks: per view (1, H, W) bool, some angle image of some channel clipped at 1.
-        mesh_vertices: (V, 3) float64 ground-truth mesh vertices (world frame).
-        mesh_triangles: (F, 3) int64 ground-truth mesh triangles.
+        mesh_vertices: (V, 3) float64 ground-truth mesh vertices (world frame), the whole scene.
+        mesh_triangles: (F, 3) int64 ground-truth mesh triangles, the whole scene.
         meta: JSON-serialisable description (generator settings, materials, lights, conventions).
+        object_triangles: (F,) bool, the triangles of the object to reconstruct (the floor of
+            ``glossy_plane_sphere`` is not); None = every triangle. :meth:`object_mesh` is the
+            evaluation ground truth (docs/evaluation.md).
     """
 
     name: str
@@ -127,6 +131,46 @@ class SyntheticScene:
     mesh_vertices: np.ndarray
     mesh_triangles: np.ndarray
     meta: dict = field(default_factory=dict)
+    object_triangles: np.ndarray | None = None
+
+    def object_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices (V', 3), triangles (F', 3)) of the object only, unused vertices dropped."""
+        return object_submesh(self.mesh_vertices, self.mesh_triangles, self.object_triangles)
+
+
+def object_submesh(
+    vertices: np.ndarray, triangles: np.ndarray, object_triangles: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The triangles selected by ``object_triangles`` (all if None), vertices re-indexed."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if object_triangles is None:
+        return vertices, triangles
+    keep = np.asarray(object_triangles, dtype=bool)
+    if keep.shape != (len(triangles),):
+        raise ValueError(f"object_triangles must have one entry per triangle ({len(triangles)}), got {keep.shape}")
+    if not keep.any():
+        raise ValueError("object_triangles selects no triangle")
+    kept = triangles[keep]
+    used, inverse = np.unique(kept.reshape(-1), return_inverse=True)
+    return vertices[used], inverse.reshape(-1, 3).astype(np.int64)
+
+
+def triangle_ranges(mask: np.ndarray) -> list[list[int]]:
+    """Run-length form [[start, end), ...] of a bool mask (for JSON)."""
+    mask = np.asarray(mask, dtype=bool)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+
+
+def mask_from_ranges(ranges: list, size: int) -> np.ndarray:
+    """Inverse of :func:`triangle_ranges`."""
+    mask = np.zeros(size, dtype=bool)
+    for start, end in ranges:
+        if not (0 <= int(start) <= int(end) <= size):
+            raise ValueError(f"triangle range [{start}, {end}) outside 0..{size}")
+        mask[int(start):int(end)] = True
+    return mask
 
 
 @dataclass
@@ -385,6 +429,7 @@ def generate_scene(
         overexposed_masks=[],
         mesh_vertices=spec.vertices.copy(),
         mesh_triangles=spec.triangles.copy(),
+        object_triangles=None if spec.object_triangles is None else spec.object_mask().copy(),
     )
     for index in tqdm(range(num_views), desc=f"rendering {spec.name}", unit="view", disable=not progress):
         clean = renderer.render(K, cameras[index], width, height)
@@ -437,4 +482,6 @@ def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_b
         "lights": [asdict(light) for light in spec.lights],
         "camera": {"target": list(spec.target), "distance": spec.camera_distance, "fov_deg": spec.fov_deg,
                    "elevations_deg": list(spec.elevations_deg)},
+        # Evaluation ground truth: the object's triangles of the scene mesh, [start, end) ranges.
+        "object_triangles": triangle_ranges(spec.object_mask()),
     }
