@@ -1,23 +1,32 @@
 """polargs_plugin: PolarGS polarization cues for 3D Gaussian Splatting trainers."""
 
+from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.config import PolarConfig
-from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
 
 if TYPE_CHECKING:
     from polargs_plugin.hooks import PolarHooks
+    from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, TrainingHooks, View
 
 __version__ = "0.1.0"
 
-__all__ = ["PolarConfig", "PolarHooks", "View", "PolarMaps", "RenderOut", "GaussianState", "NewGaussians"]
+# Imported on first use: the contracts pull in torch and PolarHooks the optics and correction
+# modules (numba among them), so `import polargs_plugin` (and `polargs --help`) stays light.
+_LAZY = {
+    "PolarHooks": "polargs_plugin.hooks",
+    "View": "polargs_plugin.types",
+    "PolarMaps": "polargs_plugin.types",
+    "RenderOut": "polargs_plugin.types",
+    "GaussianState": "polargs_plugin.types",
+    "NewGaussians": "polargs_plugin.types",
+    "TrainingHooks": "polargs_plugin.types",
+}
+
+__all__ = ["PolarConfig", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:
-    # PolarHooks pulls in the optics and correction modules (numba among them): imported on first
-    # use, so `import polargs_plugin` stays light.
-    if name == "PolarHooks":
-        from polargs_plugin.hooks import PolarHooks
-
-        return PolarHooks
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'polargs_plugin' has no attribute '{name}'")
