@@ -33,11 +33,39 @@ def test_masks_hand_cases():
     peak = peak_intensity(stokes)
     assert torch.allclose(peak.flatten(), torch.tensor([0.98, 0.84, 0.84, 0.6, 160 / 255]), atol=1e-6)
     dolp = torch.tensor([0.4, 0.05, 0.2, 0.5, 0.0]).reshape(1, 1, 5)
-    spec, over = reflective_masks(dolp, peak, (0.3, 1.0), (0.0, 0.1), (160 / 255, 1.0))
+    spec, over = reflective_masks(dolp, peak, (0.3, 1.0), (0.0, 0.1), (160 / 255, 1.0), intermediate="none")
     # specular: strong DoLP + bright; overexposed: weak DoLP + bright (160/255 inclusive);
-    # DoLP 0.2 is neither; DoLP 0.5 at peak 0.6 < 160/255 is too dark.
+    # DoLP 0.2 is neither (the paper read literally); DoLP 0.5 at peak 0.6 < 160/255 is too dark.
     assert spec.flatten().tolist() == [True, False, False, False, False]
     assert over.flatten().tolist() == [False, True, False, False, True]
+    # The default gap rule: the unsaturated DoLP-0.2 pixel (peak 0.84 < 1) is specular.
+    spec, over = reflective_masks(dolp, peak, (0.3, 1.0), (0.0, 0.1), (160 / 255, 1.0))
+    assert spec.flatten().tolist() == [True, False, True, False, False]
+    assert over.flatten().tolist() == [False, True, False, False, True]
+
+
+def test_masks_white_level_and_gap_choices():
+    # Peaks 0.5, 2.0 (HDR, above white), 0.9; DoLP 0.2 (between the rules) everywhere.
+    peak = torch.tensor([0.5, 2.0, 0.9]).reshape(1, 1, 3)
+    dolp = torch.full_like(peak, 0.2)
+    rules = dict(specular_dolp=(0.3, 1.0), overexposed_dolp=(0.0, 0.1), intensity_range=(160 / 255, 1.0))
+    expect = {
+        "none": ([False, False, False], [False, False, False]),
+        "specular": ([False, True, True], [False, False, False]),
+        "overexposed": ([False, False, False], [False, True, True]),
+        "by_saturation": ([False, False, True], [False, True, False]),  # above white = saturated
+    }
+    for choice, (spec_ok, over_ok) in expect.items():
+        spec, over = reflective_masks(dolp, peak, **rules, intermediate=choice)
+        assert (spec.flatten().tolist(), over.flatten().tolist()) == (spec_ok, over_ok), choice
+    # A value above the white level is bright (it counts as 255), not excluded from both masks.
+    spec, over = reflective_masks(torch.tensor([0.5, 0.05]), torch.tensor([3.0, 3.0]), **rules, intermediate="none")
+    assert spec.tolist() == [True, False] and over.tolist() == [False, True]
+    # A white level of 4 moves the thresholds: peak 2.0 is 2/4 = 128/255 < 160/255, too dark.
+    spec, over = reflective_masks(torch.tensor([0.5]), torch.tensor([2.0]), **rules, white_level=4.0)
+    assert not spec.any() and not over.any()
+    with pytest.raises(ValueError, match="intermediate"):
+        reflective_masks(dolp, peak, **rules, intermediate="maybe")
 
 
 def test_peak_uses_channel_mean_of_brightest_angle():

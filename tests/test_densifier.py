@@ -106,3 +106,63 @@ def test_source_depth_prefers_kept_patchmatch_then_opaque_render_then_unconfirme
     kept = torch.tensor([[[True, False, False, False]]])
     assert torch.equal(source_depth(rendered, alpha, 0.5), torch.tensor([[[2.0, 2.0, 0.0, 0.0]]]))
     assert torch.equal(source_depth(rendered, alpha, 0.5, pm, kept), torch.tensor([[[3.0, 2.0, 3.0, 0.0]]]))
+
+
+_FULL_RUN = r"""
+import hashlib, json, sys
+import torch
+from polargs_plugin import PolarConfig, PolarHooks
+from polargs_plugin.backends.reference.model import PARAM_NAMES
+from polargs_plugin.backends.reference.strategy import DensityConfig
+from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+from polargs_plugin.data.synthetic import generate_scene
+
+# 6 neighbouring views of an 18-view orbit (every view has sources within the triangulation limits)
+views = generate_scene("glossy_plane_sphere", num_views=18, width=32, height=32).views[:6]
+cfg = PolarConfig.cpu_demo()
+cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 20, 150, 10
+cfg.densify.patchmatch.iterations = 2
+train = TrainConfig.cpu(iterations=150, progress=False, num_init_points=300, init_resolution=32,
+                        density=DensityConfig(max_gaussians=1500, opacity_reset=False))
+trainer = Trainer(views, train, hooks=PolarHooks(cfg))
+trainer.train()
+digest = hashlib.sha256()
+for name in PARAM_NAMES:
+    digest.update(getattr(trainer.model, name).detach().contiguous().numpy().tobytes())
+print(json.dumps({"params": digest.hexdigest(), "num": trainer.model.num,
+                  "stats": trainer.hooks._densifier.stats}))
+"""
+
+
+def test_two_full_runs_with_the_same_seed_are_bit_identical():
+    """Issue 11 §5: a Full run (PC + Dense scheduled every 10 iterations) repeated in a fresh process,
+    with numba and torch on 2 threads, gives bit-identical parameters."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_NUM_THREADS="2", OMP_NUM_THREADS="2", PYTHONWARNINGS="ignore")
+    runs = []
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-c", _FULL_RUN], env=env, capture_output=True, text=True,
+                              timeout=900, cwd=os.path.dirname(__file__))
+        assert done.returncode == 0, done.stderr[-2000:]
+        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    assert runs[0]["stats"]["added"] > 0  # Dense did append Gaussians
+    assert runs[0] == runs[1]
+
+
+def test_even_propagation_distances_are_refused():
+    """An even distance would read pixels of the colour being updated (a race between threads)."""
+    import pytest
+
+    from polargs_plugin.densify.patchmatch import patchmatch
+
+    views, renders, maps, render_fn, cfg = _setup()
+    cfg.densify.patchmatch.propagation_distances = (1, 2)
+    ref, src = views[0], views[1]
+    out = render_fn(src)
+    with pytest.raises(ValueError, match="propagation_distances must be odd"):
+        patchmatch(ref.image, ref.K, ref.world_to_camera, src.image[None], src.K[None], src.world_to_camera[None],
+                   out.depth, out.normal, config=cfg.densify.patchmatch)

@@ -43,6 +43,21 @@ class CorrectionConfig:
     pri_saturation: float = eight_bit(254)
     # docs/choices.md: None = brightness-preserving rho_d (I_chro keeps the donors' colour).
     rho_d: float | None = None
+    # docs/choices.md "HDR inputs": the value of a polarizer-angle image (in the units of the
+    # training colour s0 / 2) that an 8-bit sensor records as 255. Brightness thresholds are in
+    # units of it; anything above it is saturated (bright for the masks, never an I_chro donor).
+    # 1.0 = the [0, 1] convention, where the trainers clamp the colour target.
+    white_level: float = 1.0
+    # docs/choices.md "Between the DoLP rules": bright pixels whose DoLP is in neither the
+    # specular nor the overexposed range: "by_saturation" (saturated -> overexposed, otherwise
+    # specular), "specular", "overexposed" or "none" (the paper read literally: no mask).
+    intermediate_dolp: str = "by_saturation"
+    # docs/choices.md "Impossible Stokes": noise allowance (units of s0, times white_level) for
+    # s0 < 0 and sqrt(s1^2 + s2^2) > s0; beyond it a pixel counts as impossible. Every pixel is
+    # projected onto the physical cone; a view with more than `max_impossible_fraction` of its
+    # (masked) pixels impossible is refused (a reader's scale or sign convention is wrong).
+    stokes_tolerance: float = 0.02
+    max_impossible_fraction: float = 0.05
 
 
 @dataclass

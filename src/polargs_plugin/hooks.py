@@ -15,6 +15,14 @@ A trainer calls, in this order::
 Ablations are config switches: ``correction.enabled`` (PC), ``densify.enabled`` (Dense) and
 ``losses.use_ref / use_normal / use_depth_normal / use_scale``. With Dense off the densify
 package is never imported.
+
+What is given to the hooks is checked at the door (docs/choices.md "Checks at the hooks' door"):
+``preprocess`` refuses views with non-finite values or wrong shapes (naming the view), reports
+physically impossible Stokes per view (refusing a view above
+``correction.max_impossible_fraction``) and warns once per view whose s0 / 2 leaves [0, 1];
+``loss`` and ``densify`` check the shapes of the render they read (cheap; no per-step scan of
+the render's values), with messages that name the argument, the expected and the actual shape.
+A cache entry whose values are not finite or whose shapes do not fit the view is recomputed.
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ import hashlib
 import json
 import pickle
 import re
+import warnings
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -32,15 +41,16 @@ import torch
 from torch import Tensor
 
 from polargs_plugin.config import PolarConfig
-from polargs_plugin.correction import compute_polar_maps
-from polargs_plugin.io import atomic_path
+from polargs_plugin.correction import compute_polar_maps, input_range, physical_stokes
+from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, scale_loss
 from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
 
-__all__ = ["PolarHooks", "maps_cache_key"]
+__all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]
 
 # Bump when compute_polar_maps changes its output for the same input: old cache files are ignored.
-_CACHE_VERSION = 1
+# 2: HDR white level, the DoLP-gap rule, physical-cone clamping (issue 11).
+_CACHE_VERSION = 2
 _MAP_FIELDS = ("aolp", "dolp", "intensity", "specular_mask", "overexposed_mask", "pri", "i_diff", "i_chro")
 
 
@@ -66,7 +76,8 @@ def maps_cache_key(view: View, config: PolarConfig) -> str:
     return digest.hexdigest()
 
 
-def _cache_file(cache_dir: Path, view: View, key: str) -> Path:
+def maps_cache_file(cache_dir: Path, view: View, key: str) -> Path:
+    """Where :meth:`PolarHooks.preprocess` caches a view's maps: ``<name>-<key prefix>.pt``."""
     stem = re.sub(r"[^A-Za-z0-9._-]+", "_", view.name)[:80]
     return cache_dir / f"{stem}-{key[:24]}.pt"
 
@@ -82,6 +93,77 @@ def _maps_from_dict(data: dict[str, Tensor]) -> PolarMaps:
         raise KeyError("cache entry lacks aolp/dolp/intensity")
     extras = {name[len("extras.") :]: value for name, value in data.items() if name.startswith("extras.")}
     return PolarMaps(**{name: data.get(name) for name in _MAP_FIELDS}, extras=extras)
+
+
+def _cache_entry_problem(data: dict[str, Tensor], view: View) -> str | None:
+    """Why a structurally valid cache entry cannot be trusted for ``view`` (None if it can)."""
+    height, width = view.height, view.width
+    for name, value in data.items():
+        if not isinstance(value, Tensor):
+            return f"{name} is not a tensor"
+        if value.ndim != 3 or tuple(value.shape[-2:]) != (height, width):
+            return f"{name} has shape {tuple(value.shape)}, the view is {height}x{width}"
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            return f"{name} holds non-finite values (NaN or inf)"
+    return None
+
+
+def _where(view: View) -> str:
+    """How messages name a view: its name and, when known, where it came from."""
+    return f"view '{view.name}'" + (f" ({view.source})" if view.source else "")
+
+
+def _first_bad(tensor: Tensor) -> str:
+    """Index of the first non-finite element, e.g. ``[0, 2, 5, 7]``."""
+    index = (~torch.isfinite(tensor)).nonzero()[0].tolist()
+    return "[" + ", ".join(str(i) for i in index) + "]"
+
+
+def _check_view(view: View) -> None:
+    """Refuse a view the hooks cannot use: wrong shapes or non-finite values (names the view)."""
+    where = _where(view)
+    problems = []
+    stokes = view.stokes
+    if not isinstance(stokes, Tensor) or stokes.ndim != 4 or stokes.shape[0] != 3 or stokes.shape[1] not in (1, 3):
+        shape = tuple(stokes.shape) if isinstance(stokes, Tensor) else type(stokes).__name__
+        raise PolarInputError(view.source or view.name, f"hooks.preprocess: {where}: stokes has shape {shape}, "
+                              "expected (3, C, H, W) with C = 1 or 3")
+    height, width = stokes.shape[-2:]
+    expected = {"K": (3, 3), "world_to_camera": (4, 4), "mask": (1, height, width),
+                "normal_gt": (3, height, width), "depth_gt": (1, height, width)}
+    for name, shape in expected.items():
+        value = getattr(view, name)
+        if value is None:
+            continue
+        if tuple(value.shape) != shape:
+            problems.append(f"{name} has shape {tuple(value.shape)}, expected {shape}")
+    for name in ("stokes", "K", "world_to_camera"):
+        value = getattr(view, name)
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            count = int((~torch.isfinite(value)).sum())
+            problems.append(f"{name} has {count} non-finite value(s) (NaN or inf), the first at index "
+                            f"{_first_bad(value)}")
+    if problems:
+        raise PolarInputError(view.source or view.name, f"hooks.preprocess: {where}: " + "; ".join(problems))
+
+
+def _check_shape(where: str, argument: str, tensor: Any, expected: tuple[int, ...], view: View) -> None:
+    """Raise ValueError naming ``argument`` when ``tensor`` does not have shape ``expected``."""
+    if not isinstance(tensor, Tensor):
+        raise ValueError(f"{where}: {argument} is {type(tensor).__name__}, expected a tensor of shape "
+                         f"{expected} like view '{view.name}'")
+    if tuple(tensor.shape) != expected:
+        raise ValueError(f"{where}: {argument} has shape {tuple(tensor.shape)}, expected {expected} "
+                         f"like view '{view.name}'")
+
+
+def _check_render(where: str, render: RenderOut, view: View, argument: str = "render",
+                  fields: Sequence[str] = ("depth", "normal", "alpha")) -> None:
+    height, width = view.height, view.width
+    shapes = {"color": (3, height, width), "depth": (1, height, width), "normal": (3, height, width),
+              "alpha": (1, height, width)}
+    for name in fields:
+        _check_shape(where, f"{argument}.{name}", getattr(render, name, None), shapes[name], view)
 
 
 class PolarHooks:
@@ -102,6 +184,8 @@ class PolarHooks:
         self._densifier: Any = None
         self._pending_state: dict[str, Any] | None = None
         self._reflective: dict[tuple[str, torch.device], ReflectiveTargets | None] = {}
+        self._warned: set[tuple[str, str, str]] = set()  # (kind, view name, source): warn once
+        self._shapes: dict[str, tuple[int, int]] = {}
 
     # ----------------------------------------------------------------------------- preprocess
     def preprocess(self, views: list[View]) -> list[PolarMaps]:
@@ -116,6 +200,10 @@ class PolarHooks:
         names = [view.name for view in views]
         if len(set(names)) != len(names):
             raise ValueError("view names must be unique: the maps are looked up by name")
+        for view in views:
+            _check_view(view)
+            self._check_physics(view)
+        self._shapes = {view.name: (view.height, view.width) for view in views}
         self._reflective.clear()
         self.maps = {view.name: self._load_or_compute(view) for view in views}
         if self.config.correction.enabled and self.config.losses.use_ref:
@@ -130,14 +218,55 @@ class PolarHooks:
                 self._pending_state = None
         return [self.maps[name] for name in names]
 
+    def _check_physics(self, view: View) -> None:
+        """Warn once per view whose s0 / 2 leaves [0, 1]; report impossible Stokes (one warning
+        per view with the counts) and refuse a view beyond ``max_impossible_fraction``."""
+        cfg = self.config.correction
+        where = _where(view)
+        low, high = input_range(view.stokes)
+        key = ("range", view.name, view.source)
+        if (low < -1e-6 or high > 1 + 1e-6) and key not in self._warned:
+            self._warned.add(key)
+            warnings.warn(
+                f"{where}: intensities s0/2 span [{low:.4g}, {high:.4g}], not the [0, 1] of 8-bit LDR "
+                f"images; brightness is measured against correction.white_level = {cfg.white_level:g} "
+                "and values above it count as saturated (reflective masks, never I_chro donors), and "
+                "trainers clamp the colour target to [0, 1] (docs/choices.md 'HDR inputs')",
+                stacklevel=3,
+            )
+        _, check = physical_stokes(view.stokes, cfg.stokes_tolerance * cfg.white_level, view.mask)
+        if check.impossible == 0:
+            return
+        counts = (f"{check.impossible} of {check.total} pixels ({100 * check.fraction:.2f} %) have physically "
+                  f"impossible Stokes beyond the noise allowance {cfg.stokes_tolerance:g} "
+                  f"({check.negative} with s0 < 0, {check.over_polarized} with s1^2 + s2^2 > s0^2)")
+        if check.fraction > cfg.max_impossible_fraction:
+            raise PolarInputError(
+                view.source or view.name,
+                f"hooks.preprocess: {where}: {counts}, more than correction.max_impossible_fraction = "
+                f"{cfg.max_impossible_fraction:g}: the reader's scale or sign convention of s0/s1/s2 is "
+                "probably wrong (docs/conventions.md: s0 = (I0 + I45 + I90 + I135) / 2, s1 = I0 - I90)",
+            )
+        key = ("physics", view.name, view.source)
+        if key not in self._warned:
+            self._warned.add(key)
+            warnings.warn(f"{where}: {counts}; clamped onto s0 >= 0, DoLP <= 1 (docs/choices.md "
+                          "'Impossible Stokes')", stacklevel=3)
+
     def _load_or_compute(self, view: View) -> PolarMaps:
         cache_dir = self.config.cache_dir
         if cache_dir is None:
             return compute_polar_maps(view.stokes, view.mask, self.config.correction)
-        path = _cache_file(Path(cache_dir), view, maps_cache_key(view, self.config))
+        path = maps_cache_file(Path(cache_dir), view, maps_cache_key(view, self.config))
         if path.is_file():
             try:
-                return _maps_from_dict(torch.load(path, map_location=view.stokes.device, weights_only=True))
+                data = torch.load(path, map_location=view.stokes.device, weights_only=True)
+                maps = _maps_from_dict(data)
+                problem = _cache_entry_problem(data, view)
+                if problem is None:
+                    return maps
+                warnings.warn(f"{path}: cache entry of {_where(view)} not used ({problem}); recomputed",
+                              stacklevel=3)
             except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError):
                 pass  # unreadable cache entry: recompute and overwrite it
         maps = compute_polar_maps(view.stokes, view.mask, self.config.correction)
@@ -202,6 +331,7 @@ class PolarHooks:
             tensors (each active term, unweighted; ``float()`` them only when logging).
         """
         cfg = self.config.losses
+        self._check_loss_inputs(iteration, view, render, gaussians)
         color = render.color
         terms: list[Tensor] = []
         logs: dict[str, Tensor] = {}
@@ -228,6 +358,32 @@ class PolarHooks:
             logs["l_scale"] = l_scale.detach()
         extra = sum(terms[1:], terms[0]) if terms else color.new_zeros(())
         return extra, logs
+
+    def _check_view_known(self, where: str, view: View) -> None:
+        shape = self._shapes.get(view.name)
+        if shape is None:
+            raise KeyError(f"{where}: view '{view.name}' was not preprocessed: call hooks.preprocess(views) first")
+        if shape != (view.height, view.width):
+            raise ValueError(f"{where}: view.stokes is {view.height}x{view.width}, but view '{view.name}' was "
+                             f"preprocessed at {shape[0]}x{shape[1]}")
+
+    def _check_loss_inputs(self, iteration: int, view: View, render: RenderOut, gaussians: GaussianState) -> None:
+        """Shapes only (cheap): the argument, the expected and the actual shape in the message."""
+        where = "hooks.loss"
+        self._check_view_known(where, view)
+        cfg = self.config.losses
+        fields = ["color"] if self.config.correction.enabled and cfg.use_ref else []
+        geometry = cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter
+        if geometry:
+            fields += ["depth", "normal", "alpha"]
+        elif cfg.use_normal and self._normal_targets_fresh(iteration) and self.normal_target(view.name) is not None:
+            fields.append("normal")
+        _check_render(where, render, view, fields=fields)
+        if cfg.use_scale:
+            scales = getattr(gaussians, "scales", None)
+            if not isinstance(scales, Tensor) or scales.ndim != 2 or scales.shape[1] != 3:
+                shape = tuple(scales.shape) if isinstance(scales, Tensor) else type(scales).__name__
+                raise ValueError(f"{where}: gaussians.scales has shape {shape}, expected (N, 3)")
 
     def geometry_needed(self, iteration: int, view_name: str) -> bool:
         """Whether :meth:`loss` reads the render's depth, normal or alpha at this iteration for
@@ -265,8 +421,18 @@ class PolarHooks:
         """
         if self._densifier is None:
             return None
+        where = "hooks.densify"
+        self._check_view_known(where, view)
+        if render is not None:
+            _check_render(where, render, view)
+
+        def checked_render_fn(source: View) -> RenderOut:
+            out = render_fn(source)
+            _check_render(where, out, source, argument=f"render_fn(view '{source.name}')")
+            return out
+
         with torch.no_grad():
-            return self._densifier(iteration, view, render_fn, gaussians, render=render)
+            return self._densifier(iteration, view, checked_render_fn, gaussians, render=render)
 
     def consistency_filter(
         self, depths: Sequence[Tensor], normals: Sequence[Tensor] | None, views: Sequence[View], **kwargs: Any

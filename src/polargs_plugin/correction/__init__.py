@@ -11,20 +11,31 @@ from torch import Tensor
 
 from polargs_plugin.config import CorrectionConfig
 from polargs_plugin.correction.crm import chromaticity_map, diffuse_map, propagate, whiten_features
-from polargs_plugin.correction.masks import peak_intensity, reflective_masks
+from polargs_plugin.correction.masks import INTERMEDIATE_CHOICES, peak_intensity, reflective_masks
+from polargs_plugin.correction.physics import StokesCheck, input_range, physical_stokes
 from polargs_plugin.correction.pri import (
     clipped_angles,
     polarimetric_reference_intensity,
     pri_weights,
     pri_with_clipping,
 )
-from polargs_plugin.optics.stokes import aolp_from_stokes, dolp_from_stokes, intensities_from_stokes
+from polargs_plugin.optics.stokes import (
+    aolp_from_stokes,
+    dolp_from_stokes,
+    intensities_from_stokes,
+    stokes_from_intensities,
+)
 from polargs_plugin.types import PolarMaps
 
 __all__ = [
     "compute_polar_maps",
     "peak_intensity",
     "reflective_masks",
+    "INTERMEDIATE_CHOICES",
+    "physical_stokes",
+    "StokesCheck",
+    "input_range",
+    "sensor_dolp",
     "polarimetric_reference_intensity",
     "pri_weights",
     "clipped_angles",
@@ -36,6 +47,25 @@ __all__ = [
 ]
 
 
+# Relative slack on the white level for float rounding of Malus re-synthesised angle images.
+_WHITE_TOL = 1e-4
+
+
+def sensor_dolp(angles: Tensor, white_level: float) -> Tensor:
+    """DoLP of the channel-mean colour as a sensor clipping at ``white_level`` would record it.
+
+    Args:
+        angles: :math:`(4, C, H, W)` 0/45/90/135 deg images.
+        white_level: clipping level (the value recorded as full scale).
+
+    Returns:
+        :math:`(1, H, W)` DoLP of the clipped images (HDR highlights lose their polarization as
+        on an 8-bit sensor, where the paper's thresholds were set).
+    """
+    clipped = angles.clamp(0.0, white_level).mean(dim=-3, keepdim=True)  # (4, 1, H, W)
+    return dolp_from_stokes(stokes_from_intensities(clipped))
+
+
 def compute_polar_maps(
     stokes: Tensor,
     mask: Tensor | None = None,
@@ -44,11 +74,19 @@ def compute_polar_maps(
 ) -> PolarMaps:
     """All per-view maps of module PC.
 
-    AoLP and DoLP come from the channel-mean Stokes. With ``config.enabled`` False only those and
-    the intensity are filled (the densifier still needs them). Reflective masks are restricted to
-    ``mask``; donors of the I_chro propagation are the non-reflective pixels inside ``mask``.
+    The Stokes are first projected onto the physical cone (s0 >= 0, DoLP <= 1;
+    :func:`physical_stokes`). AoLP and DoLP come from the channel-mean Stokes. With
+    ``config.enabled`` False only those and the intensity are filled (the densifier still needs
+    them). Reflective masks are restricted to ``mask``; donors of the I_chro propagation are the
+    non-reflective pixels inside ``mask`` that are not saturated (no channel of any angle image
+    at the clipping level ``pri_saturation * white_level``).
     Propagation features (docs/choices.md): (DoLP, PRI), whitened by their covariance over the
     donors; a target pixel whose four angles all clip has no usable PRI and compares on DoLP only.
+
+    Inputs that are not [0, 1] LDR (docs/choices.md "HDR inputs"): brightness is measured against
+    ``config.white_level``; the masks use the DoLP a sensor clipping there would record
+    (:func:`sensor_dolp`, equal to the plain DoLP where nothing exceeds the white level); PRI's
+    clipping level is ``pri_saturation * white_level``; I_diff is clamped to the white level.
 
     Args:
         stokes: :math:`(3, C, H, W)` Stokes of one view.
@@ -58,12 +96,16 @@ def compute_polar_maps(
             (saves re-deriving them by Malus, e.g. straight after demosaicing).
 
     Returns:
-        :class:`PolarMaps`; ``extras`` holds ``"peak_intensity"`` :math:`(1, H, W)` and
-        ``"i_chro_valid"`` :math:`(1, H, W)` bool (overexposed pixels that found a donor).
+        :class:`PolarMaps`; ``extras`` holds ``"peak_intensity"`` :math:`(1, H, W)`,
+        ``"i_chro_valid"`` :math:`(1, H, W)` bool (overexposed pixels that found a donor) and
+        ``"saturated"`` :math:`(1, H, W)` bool (some channel of some angle image at the clipping
+        level ``pri_saturation * white_level``: clipped colour).
     """
     config = config or CorrectionConfig()
     if stokes.ndim != 4 or stokes.shape[0] != 3:
         raise ValueError(f"stokes must have shape (3, C, H, W), got {tuple(stokes.shape)}")
+    white = float(config.white_level)
+    stokes, _ = physical_stokes(stokes, config.stokes_tolerance * white)
     mean_stokes = stokes.mean(dim=-3, keepdim=True)
     aolp = aolp_from_stokes(mean_stokes)
     dolp = dolp_from_stokes(mean_stokes)
@@ -73,17 +115,27 @@ def compute_polar_maps(
 
     inside = torch.ones_like(dolp, dtype=torch.bool) if mask is None else mask.to(torch.bool)
     peak = peak_intensity(mean_stokes)
+    angles = intensities_from_stokes(stokes) if intensities is None else intensities  # (4, C, H, W)
+    # Where some angle image of some channel exceeds the white level (HDR), the masks use the
+    # DoLP a sensor clipping there would record. A pixel with some channel of some angle at the
+    # clipping level (pri_saturation * white) holds clipped colour: saturated, never a donor.
+    brightest = angles.flatten(0, 1).amax(dim=0, keepdim=True)  # (1, H, W)
+    above_white = brightest > white * (1 + _WHITE_TOL)
+    saturated = brightest >= config.pri_saturation * white
+    mask_dolp = dolp
+    if bool(above_white.any()):
+        mask_dolp = torch.where(above_white, sensor_dolp(angles, white), dolp)
     specular, overexposed = reflective_masks(
-        dolp, peak, config.specular_dolp, config.overexposed_dolp, config.intensity_range
+        mask_dolp, peak, config.specular_dolp, config.overexposed_dolp, config.intensity_range,
+        white_level=white, intermediate=config.intermediate_dolp, saturated=saturated,
     )
     specular &= inside
     overexposed &= inside
 
-    angles = intensities_from_stokes(stokes) if intensities is None else intensities  # (4, C, H, W)
-    pri, all_clipped = pri_with_clipping(angles, config.pri_saturation)
-    i_diff = diffuse_map(stokes)
+    pri, all_clipped = pri_with_clipping(angles, config.pri_saturation * white)
+    i_diff = diffuse_map(stokes).clamp_(max=white)
 
-    donors = inside & ~specular & ~overexposed
+    donors = inside & ~specular & ~overexposed & ~saturated
     features = whiten_features(torch.cat([dolp, pri]), donors)
     components = torch.cat([torch.ones_like(all_clipped), ~all_clipped])
     i_prop, chro_valid = propagate(
@@ -110,5 +162,5 @@ def compute_polar_maps(
         pri=pri,
         i_diff=i_diff,
         i_chro=i_chro,
-        extras={"peak_intensity": peak, "i_chro_valid": chro_valid},
+        extras={"peak_intensity": peak, "i_chro_valid": chro_valid, "saturated": saturated},
     )

@@ -57,8 +57,8 @@ def whiten_features(features: Tensor, sample_mask: Tensor, ridge: float = 1e-4) 
 
     Example:
         >>> f = torch.tensor([[[0.0, 2.0]]])
-        >>> whiten_features(f, torch.ones(1, 1, 2, dtype=torch.bool), ridge=0.0).flatten()
-        tensor([0., 2.])
+        >>> whiten_features(f, torch.ones(1, 1, 2, dtype=torch.bool), ridge=0.0).flatten()  # var 2
+        tensor([0.0000, 1.4142])
     """
     count = int(features.shape[0])
     flat = features.reshape(count, -1)

@@ -257,6 +257,10 @@ def patchmatch(
     cfg = config or PatchMatchConfig()
     if src_images.shape[0] == 0:
         raise ValueError("patchmatch needs at least one source view")
+    if not cfg.propagation_distances or any(k < 1 or k % 2 == 0 for k in cfg.propagation_distances):
+        # An even distance reads a pixel of the colour being updated: a data race between the
+        # numba threads (results would depend on thread timing) and a different rule on torch.
+        raise ValueError(f"propagation_distances must be odd and >= 1 (checkerboard), got {cfg.propagation_distances}")
     dev = ref_image.device
     backend = _resolve_backend(cfg.ncc_backend, dev)
     if generator is None:
