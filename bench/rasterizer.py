@@ -5,13 +5,26 @@ screen-space sigma 0.5-2.5 px, opacity 0.5-1 (the setting of reference §2). One
 rasterize + a loss on every output + backward. Each configuration runs in its own subprocess
 so that its peak resident memory (``resource.getrusage(...).ru_maxrss``) is its own.
 
+Configurations (``--configs``, ``N:WxH[:shD]``): 12k Gaussians at 256x256 with RGB colours, and
+6000 Gaussians at 128x128 with SH degree 3 (the size of the CPU training preset). Backends:
+``naive``; ``torch`` (torch projection and compositing); ``numba`` (compiled projection and
+compositing, what ``backend="auto"`` runs on CPU); ``numba_tproj`` (numba compositing with the
+torch projection and SH evaluation, ``projection="torch"``: the projection path before the
+compiled one, kept for this comparison); with ``--ref-src DIR``, ``numba_ref``: ``backend="numba"``
+of another copy of the package (``DIR`` is put first on its PYTHONPATH), e.g. the last commit's,
+so that old and new are timed in the same run. The "proj" column is the projection + SH colour
+forward+backward alone as a share of the whole forward+backward.
+
 The naive baseline evaluates every pixel against every Gaussian (depth-sorted) with a full
 cumulative product, masked to the same compositing rule, chunked over pixels with a
 per-chunk backward so it fits in memory. It is also the exactness check: the table prints the
 largest colour/depth difference of each path against it.
 
-    .venv/bin/python bench/rasterizer.py                      # 12k Gaussians, 256x256, 2 threads
-    .venv/bin/python bench/rasterizer.py --gaussians 30000 --width 400 --height 300
+    .venv/bin/python bench/rasterizer.py                      # both configurations, 2 threads
+    .venv/bin/python bench/rasterizer.py --configs 30000:400x300 --backends torch,numba
+    git archive HEAD src | tar -x -C /tmp/ref && .venv/bin/python bench/rasterizer.py --ref-src /tmp/ref/src
+
+The last line printed is one JSON object with the figures of every configuration.
 """
 
 from __future__ import annotations
@@ -31,14 +44,16 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from polargs_plugin.backends.reference.composite_torch import ALPHA_MAX, T_MIN
-from polargs_plugin.backends.reference.projection import ALPHA_MIN, project_gaussians
+from polargs_plugin.backends.reference.projection import ALPHA_MIN, eval_sh, project_gaussians
 from polargs_plugin.backends.reference.rasterizer import rasterize
 
-BACKENDS = ("naive", "torch", "numba")
+BACKENDS = ("naive", "torch", "numba", "numba_tproj", "numba_ref")
+DEFAULT_CONFIGS = "12000:256x256,6000:128x128:sh3"
 
 
-def surface_scene(num: int, width: int, height: int, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Flat Gaussians tangent to a unit sphere 4 units in front of an identity camera."""
+def surface_scene(num: int, width: int, height: int, seed: int = 0, sh_degree: int = -1) -> dict[str, torch.Tensor]:
+    """Flat Gaussians tangent to a unit sphere 4 units in front of an identity camera; RGB
+    colours (``sh_degree`` -1) or SH coefficients of that degree (DC from the same colours)."""
     gen = torch.Generator().manual_seed(seed)
     focal = 0.6 * width
     K = torch.tensor([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -57,10 +72,25 @@ def surface_scene(num: int, width: int, height: int, seed: int = 0) -> dict[str,
         "quats": torch.from_numpy(np.roll(Rotation.from_matrix(rot.double().numpy()).as_quat(), 1, axis=-1)).float(),
         "scales": scales,
         "opacities": 0.5 + 0.5 * torch.rand(num, generator=gen),
-        "colors": torch.rand(num, 3, generator=gen),
+        "colors": _colors(torch.rand(num, 3, generator=gen), sh_degree, gen),
         "K": K,
         "world_to_camera": torch.eye(4, dtype=torch.float64),
     }
+
+
+def _colors(rgb: torch.Tensor, sh_degree: int, gen: torch.Generator) -> torch.Tensor:
+    if sh_degree < 0:
+        return rgb
+    rest = 0.1 * torch.randn(rgb.shape[0], (sh_degree + 1) ** 2 - 1, 3, generator=gen)
+    return torch.cat([((rgb - 0.5) / 0.28209479177387814)[:, None], rest], dim=1)
+
+
+def _view_colors(scene: dict, colors: torch.Tensor) -> torch.Tensor:
+    """Per-view RGB of ``colors`` (SH evaluated as the rasterizer does)."""
+    if colors.dim() == 2:
+        return colors
+    w2c = scene["world_to_camera"].to(scene["means"])
+    return eval_sh(colors, scene["means"] + w2c[:3, :3].T @ w2c[:3, 3])
 
 
 def naive_render(scene: dict, width: int, height: int, pixel_chunk: int = 512) -> dict[str, torch.Tensor]:
@@ -74,7 +104,7 @@ def naive_render(scene: dict, width: int, height: int, pixel_chunk: int = 512) -
         params["means"], params["quats"], params["scales"], params["opacities"],
         scene["K"], scene["world_to_camera"], width, height,
     )
-    colors = params["colors"]
+    colors = _view_colors(scene, params["colors"])
     keep = (proj.extents > 0).all(dim=-1)
     order = torch.argsort(proj.depths.detach())
     order = order[keep[order]]
@@ -126,21 +156,45 @@ def _loss_weights(width: int, height: int) -> torch.Tensor:
     return torch.rand(9, height * width, generator=torch.Generator().manual_seed(1))
 
 
-def _loss(out) -> torch.Tensor:
-    w = _loss_weights(out.color.shape[-1], out.color.shape[-2]).reshape(9, *out.color.shape[-2:])
+def _loss(out, weights: torch.Tensor | None = None) -> torch.Tensor:
+    shape = out.color.shape[-2:]
+    w = (_loss_weights(shape[1], shape[0]) if weights is None else weights).reshape(9, *shape)
     # Same weights on the raw sums as the naive path (depth sum = depth * alpha).
     stacked = torch.cat([out.color, out.depth * out.alpha, out.normal, out.alpha, out.median_depth])
     return (stacked * w).sum()
 
 
-def worker(backend: str, num: int, width: int, height: int, iters: int, threads: int, out_dir: str) -> dict:
+def _projection_step(backend: str, scene: dict, params: tuple, width: int, height: int):
+    """The projection + SH colour forward+backward alone, as ``rasterize`` runs it for ``backend``."""
+    tensors = [scene[k] for k in params]
+    if backend == "numba":
+        from polargs_plugin.backends.reference.projection_numba import project_numba
+
+        proj, colors = project_numba(*tensors, scene["K"], scene["world_to_camera"], width, height)
+    else:
+        means, quats, scales, opacities, colors = tensors
+        proj = project_gaussians(means, quats, scales, opacities, scene["K"], scene["world_to_camera"], width, height)
+        colors = _view_colors(scene, colors)
+    outs = [x for x in (*proj[:7], colors)]
+    return outs
+
+
+def worker(
+    backend: str, num: int, width: int, height: int, sh_degree: int, iters: int, threads: int, out_dir: str
+) -> dict:
     """Time one configuration in this process; wall and CPU seconds, best of ``iters``."""
     torch.set_num_threads(threads)
-    scene = surface_scene(num, width, height)
+    scene = surface_scene(num, width, height, sh_degree=sh_degree)
     params = ("means", "quats", "scales", "opacities", "colors")
     for k in params:
         scene[k].requires_grad_(True)
-    result: dict = {"backend": backend, "rss_before_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    import polargs_plugin
+
+    result: dict = {
+        "backend": backend,
+        "package": os.path.dirname(polargs_plugin.__file__),
+        "rss_before_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
 
     def timed(fn):
         wall, cpu = time.perf_counter(), time.process_time()
@@ -150,83 +204,175 @@ def worker(backend: str, num: int, width: int, height: int, iters: int, threads:
     if backend == "naive":
         naive_render(scene, 16, 16)  # warm-up at a tiny size; the full run is too slow to repeat
         wall, cpu, out = timed(lambda: naive_render(scene, width, height))
-        result.update(fwd_s=math.nan, fwd_bwd_s=wall, fwd_bwd_cpu_s=cpu, survivors_per_px=math.nan)
+        result.update(fwd_s=math.nan, fwd_bwd_s=wall, fwd_bwd_cpu_s=cpu, proj_s=math.nan)
         images = out
     else:
+        raster_backend, projection = {"numba_tproj": ("numba", "torch"), "numba_ref": ("numba", None)}.get(
+            backend, (backend, "auto")
+        )
+        weights = _loss_weights(width, height)
+        kwargs = {"backend": raster_backend} | ({} if projection is None else {"projection": projection})
+
         def run(with_backward: bool):
-            out = rasterize(
-                *(scene[k] for k in params), scene["K"], scene["world_to_camera"], width, height, backend=backend
-            )
+            out = rasterize(*(scene[k] for k in params), scene["K"], scene["world_to_camera"], width, height, **kwargs)
             if with_backward:
-                _loss(out).backward()
+                _loss(out, weights).backward()
             return out
 
+        proj_path = "numba" if backend == "numba" else "torch"
+        proj_grads = [torch.rand_like(x) for x in _projection_step(proj_path, scene, params, width, height)]
+
+        def run_projection():
+            outs = _projection_step(proj_path, scene, params, width, height)
+            torch.autograd.backward(outs, proj_grads)
+
         run(True)  # warm-up: JIT compile or load the Numba cache, allocator
-        fwd, full = [], []
+        run_projection()
+        fwd, full, proj = [], [], []
         for _ in range(iters):
             with torch.no_grad():
                 fwd.append(timed(lambda: run(False)))
             full.append(timed(lambda: run(True)))
-        best_fwd, best_full = min(fwd), min(full)
-        result.update(fwd_s=best_fwd[0], fwd_bwd_s=best_full[0], fwd_bwd_cpu_s=best_full[1])
+            proj.append(timed(run_projection))
+        best_fwd, best_full, best_proj = min(fwd), min(full), min(proj)
+        result.update(fwd_s=best_fwd[0], fwd_bwd_s=best_full[0], fwd_bwd_cpu_s=best_full[1], proj_s=best_proj[0])
         images = {"color": best_full[2].color.detach(), "depth": best_full[2].depth.detach()}
     result["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     torch.save(images, os.path.join(out_dir, f"{backend}.pt"))
     return result
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--gaussians", type=int, default=12000)
-    parser.add_argument("--width", type=int, default=256)
-    parser.add_argument("--height", type=int, default=256)
-    parser.add_argument("--iters", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--backends", default=",".join(BACKENDS))
-    parser.add_argument("--worker", choices=BACKENDS, help=argparse.SUPPRESS)
-    parser.add_argument("--out-dir", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.worker:
-        result = worker(args.worker, args.gaussians, args.width, args.height, args.iters, args.threads, args.out_dir)
-        print(json.dumps(result))
-        return 0
+def _parse_config(text: str) -> tuple[int, int, int, int]:
+    """"N:WxH[:shD]" -> (N, W, H, SH degree or -1 for RGB)."""
+    parts = text.split(":")
+    width, height = (int(v) for v in parts[1].lower().split("x"))
+    sh = int(parts[2].lower().removeprefix("sh")) if len(parts) > 2 else -1
+    return int(parts[0]), width, height, sh
 
+
+def _thread_env(threads: int) -> dict[str, str]:
+    """The thread policy's environment for the workers (:class:`polargs_plugin.threads.ThreadPolicy`:
+    passive OpenMP waiting, numba's workqueue layer), variables already set in the shell kept.
+    Without it torch's and numba's OpenMP workers spin against each other on 2 cores: at 6000
+    Gaussians / 128x128 a worker then took 0.136 s/iter instead of 0.021 s (tiny torch ops of
+    8 ms each)."""
+    try:
+        from polargs_plugin.threads import ThreadPolicy
+    except ImportError:  # a package without the policy
+        return {}
+    return {k: v for k, v in ThreadPolicy(threads=threads).environment().items() if k not in os.environ}
+
+
+def run_config(num: int, width: int, height: int, sh: int, args) -> dict | None:
+    """Run every backend of one configuration, print its table; returns its figures."""
     rows = []
     with tempfile.TemporaryDirectory() as out_dir:
-        for backend in args.backends.split(","):
-            cmd = [sys.executable, __file__, "--worker", backend, "--gaussians", str(args.gaussians),
-                   "--width", str(args.width), "--height", str(args.height), "--iters", str(args.iters),
-                   "--threads", str(args.threads), "--out-dir", out_dir]
+        backends = args.backends.split(",")
+        if args.ref_src and "numba_ref" not in backends:
+            backends.append("numba_ref")
+        for backend in backends:
+            if backend == "numba_ref" and not args.ref_src:
+                continue
+            cmd = [sys.executable, __file__, "--worker", backend, "--gaussians", str(num),
+                   "--width", str(width), "--height", str(height), "--sh-degree", str(sh),
+                   "--iters", str(args.iters), "--threads", str(args.threads), "--out-dir", out_dir]
             env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads)}
+            env.update(_thread_env(args.threads))
+            if backend == "numba_ref":
+                env["PYTHONPATH"] = os.pathsep.join([os.path.abspath(args.ref_src), env.get("PYTHONPATH", "")])
             proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
             if proc.returncode != 0:
                 print(proc.stderr, file=sys.stderr)
-                return 1
+                return None
             row = json.loads(proc.stdout.strip().splitlines()[-1])
             row["images"] = torch.load(os.path.join(out_dir, f"{backend}.pt"))
             rows.append(row)
 
     naive = next((r for r in rows if r["backend"] == "naive"), None)
-    print(f"rasterizer bench: {args.gaussians} Gaussians, {args.width}x{args.height}, {args.threads} threads, "
-          f"best of {args.iters} (naive: one run); cpu = process CPU seconds (less sensitive to other load)")
-    print(f"{'backend':8s} {'fwd s/it':>9s} {'fwd+bwd s/it':>13s} {'cpu s/it':>9s} {'x naive':>8s} "
+    colours = "RGB" if sh < 0 else f"SH degree {sh}"
+    print(f"rasterizer bench: {num} Gaussians, {width}x{height}, {colours}, {args.threads} threads, "
+          f"best of {args.iters} (naive: one run); cpu = process CPU seconds (less sensitive to other load); "
+          f"proj = projection + SH fwd+bwd alone / fwd+bwd")
+    print(f"{'backend':12s} {'fwd s/it':>9s} {'fwd+bwd s/it':>13s} {'cpu s/it':>9s} {'proj':>6s} {'x naive':>8s} "
           f"{'peak RSS MiB':>13s} {'max|dcolor|':>12s} {'max|ddepth|':>12s}")
+    figures: dict = {"gaussians": num, "width": width, "height": height, "sh_degree": sh, "backends": {}}
     for r in rows:
         speedup = naive["fwd_bwd_s"] / r["fwd_bwd_s"] if naive else math.nan
         dc = dd = math.nan
         if naive:
             dc = (r["images"]["color"] - naive["images"]["color"]).abs().max().item()
             dd = (r["images"]["depth"] - naive["images"]["depth"]).abs().max().item()
-        print(f"{r['backend']:8s} {r['fwd_s']:9.3f} {r['fwd_bwd_s']:13.3f} {r['fwd_bwd_cpu_s']:9.3f} {speedup:8.1f} "
-              f"{r['peak_rss_mib']:13.0f} {dc:12.2e} {dd:12.2e}")
+        share = r["proj_s"] / r["fwd_bwd_s"]
+        print(f"{r['backend']:12s} {r['fwd_s']:9.4f} {r['fwd_bwd_s']:13.4f} {r['fwd_bwd_cpu_s']:9.4f} {share:6.1%} "
+              f"{speedup:8.1f} {r['peak_rss_mib']:13.0f} {dc:12.2e} {dd:12.2e}")
+        figures["backends"][r["backend"]] = {
+            "fwd_s": _num(r["fwd_s"]), "fwd_bwd_s": _num(r["fwd_bwd_s"]), "fwd_bwd_cpu_s": _num(r["fwd_bwd_cpu_s"]),
+            "proj_s": _num(r["proj_s"]), "proj_share": _num(share), "x_naive": _num(speedup),
+            "peak_rss_mib": round(r["peak_rss_mib"], 1), "max_dcolor": _num(dc), "max_ddepth": _num(dd),
+            "package": r["package"],
+        }
     fast = [r for r in rows if r["backend"] != "naive"]
+    by_name = {r["backend"]: r for r in rows}
+    for other in ("numba_tproj", "numba_ref"):
+        if "numba" in by_name and other in by_name:
+            figures[f"{other.removeprefix('numba_')}_over_numba"] = round(
+                by_name[other]["fwd_bwd_s"] / by_name["numba"]["fwd_bwd_s"], 3
+            )
     if fast:
         best = min(fast, key=lambda r: r["fwd_bwd_s"])
+        figures["best"] = best["backend"]
         ratio = f"{naive['fwd_bwd_s'] / best['fwd_bwd_s']:.1f}x naive" if naive else "naive not run"
-        print(f"KEY: {args.gaussians} Gaussians {args.width}x{args.height} {args.threads} threads: "
-              f"best={best['backend']} fwd+bwd={best['fwd_bwd_s']:.3f} s/iter ({ratio}), "
+        print(f"KEY: {num} Gaussians {width}x{height} {colours} {args.threads} threads: "
+              f"best={best['backend']} fwd+bwd={best['fwd_bwd_s']:.4f} s/iter ({ratio}), "
               f"peak RSS {best['peak_rss_mib']:.0f} MiB; "
-              + ", ".join(f"{r['backend']}={r['fwd_bwd_s']:.3f}" for r in rows))
+              + ", ".join(f"{r['backend']}={r['fwd_bwd_s']:.4f}" for r in rows))
+    print()
+    return figures
+
+
+def _num(x: float) -> float | None:
+    return None if x is None or math.isnan(x) else round(float(x), 6)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--configs", default=DEFAULT_CONFIGS, help="comma-separated N:WxH[:shD]")
+    parser.add_argument("--iters", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--backends", default=",".join(BACKENDS[:4]))
+    parser.add_argument("--ref-src", help="another copy of the package's src/ to time as numba_ref")
+    parser.add_argument("--worker", choices=BACKENDS, help=argparse.SUPPRESS)
+    parser.add_argument("--gaussians", type=int, default=12000, help=argparse.SUPPRESS)
+    parser.add_argument("--width", type=int, default=256, help=argparse.SUPPRESS)
+    parser.add_argument("--height", type=int, default=256, help=argparse.SUPPRESS)
+    parser.add_argument("--sh-degree", type=int, default=-1, help=argparse.SUPPRESS)
+    parser.add_argument("--out-dir", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        result = worker(args.worker, args.gaussians, args.width, args.height, args.sh_degree, args.iters,
+                        args.threads, args.out_dir)
+        print(json.dumps(result))
+        return 0
+
+    load_before = os.getloadavg()[0]
+    configs = []
+    for text in args.configs.split(","):
+        figures = run_config(*_parse_config(text), args)
+        if figures is None:
+            return 1
+        configs.append(figures)
+    summary = {
+        "bench": "rasterizer",
+        "threads": args.threads,
+        "iters": args.iters,
+        "load_1min_before": round(load_before, 2),
+        "load_1min_after": round(os.getloadavg()[0], 2),
+        "worker_env": {"OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads)}
+        | {k: os.environ[k] for k in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER") if k in os.environ}
+        | _thread_env(args.threads),
+        "configs": configs,
+    }
+    print(json.dumps(summary))
     return 0
 
 

@@ -182,3 +182,27 @@ def test_max_gaussians_caps_growth_by_gradient():
     assert out["cloned"] == 2 and model.num == 6
     dc = model.sh_dc.detach()[:, 0, 0]
     assert int((dc == 3.0).sum()) == 2 and int((dc == 1.0).sum()) == 2  # the two highest gradients
+
+
+def _indexed_update(state, grad, radii, width, height):
+    """DensityControl.update as written before issue 9 (boolean indexing), for comparison."""
+    visible = radii > 0
+    norms = (grad[visible] * grad.new_tensor([width / 2.0, height / 2.0])).norm(dim=-1)
+    state["grad2d"][visible] += norms
+    state["count"][visible] += 1
+    state["max_radii"][visible] = torch.maximum(state["max_radii"][visible], radii[visible].to(state["max_radii"]))
+
+
+def test_update_without_indexing_equals_the_indexed_update_bit_for_bit():
+    gen = torch.Generator().manual_seed(3)
+    n = 500
+    ctrl = DensityControl(DensityConfig(), EXTENT)
+    state = {k: torch.zeros(n) for k in ("grad2d", "count", "max_radii")}
+    for it, (w, h) in enumerate([(128, 128), (128, 128), (96, 64), (128, 128)], start=1):
+        means2d = torch.zeros(n, 2, requires_grad=True)
+        means2d.grad = torch.randn(n, 2, generator=gen) * 1e-3
+        radii = torch.randint(0, 12, (n,), generator=gen) * (torch.rand(n, generator=gen) > 0.3)
+        render = RenderOut(color=None, depth=None, normal=None, alpha=None, means2d=means2d, radii=radii)
+        ctrl.update(render, w, h, iteration=it)
+        _indexed_update(state, means2d.grad, radii, w, h)
+        assert all(torch.equal(ctrl.state[k], state[k]) for k in state)

@@ -271,3 +271,41 @@ def test_base_loss_is_vanilla_colour_loss_on_the_background_target(views):
     assert torch.allclose(trainer.base_loss(pred, target), vanilla, atol=1e-6)
     # the very function PolarHooks' reflective replacement assumes, so the cancellation is exact
     assert torch.equal(trainer.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.3))
+
+
+def test_lazy_step_logs_equal_the_figures_computed_every_step(views):
+    """StepLogs read late (or never) give the figures the eager step computed: loss, PSNR of that
+    step's render against its target, hook logs, counts; train() reports the window's mean loss."""
+    ref: list = []
+
+    class Capturing(Trainer):
+        def base_loss(self, image, target):
+            self.captured = (image.detach().clone(), target)
+            return super().base_loss(image, target)
+
+    eager = Capturing(views, _config(iterations=12, log_every=4), hooks=RecordingHooks(ref, append_at=3))
+    ref.append(eager)
+    figures_every_step = []
+    for _ in range(12):
+        logs = eager.step()
+        image, target = eager.captured
+        mse = float(((image - target) ** 2).mean())
+        assert logs["psnr"] == pytest.approx(-10 * math.log10(mse), abs=1e-9)
+        assert logs["fake"] == 1.0 and logs["num"] == float(eager.model.num)
+        figures_every_step.append(dict(logs))
+    # the same run (same seed), nothing read until the end: the global generators are re-seeded
+    # by the constructor, so the runs are identical
+    ref[0] = lazy = Trainer(views, _config(iterations=12, log_every=4), hooks=RecordingHooks(ref, append_at=3))
+    kept = [lazy.step() for _ in range(12)]
+    assert [dict(k) for k in kept] == figures_every_step
+    assert kept[2]["appended"] == 2.0 and "appended" not in kept[3]
+    assert dict(kept[0]) == dict(kept[0])  # read again: cached, unchanged
+    assert isinstance(kept[0].loss, torch.Tensor) and not kept[0].loss.requires_grad
+    # train(): the loss figure is the mean over the last log_every iterations
+    a = Trainer(views, _config(iterations=10, log_every=4))
+    figures = a.train()
+    b = Trainer(views, _config(iterations=10, log_every=4))
+    losses = [b.step()["loss"] for _ in range(10)]
+    assert figures["loss"] == pytest.approx(sum(losses[8:]) / 2, rel=1e-6)
+    with pytest.raises(ValueError, match="log_every"):
+        Trainer(views, _config(log_every=0))

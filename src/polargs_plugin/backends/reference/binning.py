@@ -1,6 +1,9 @@
 """Tile binning: which Gaussians can touch which screen tile, front to back, with one sort.
 
-No gradients flow here; the output is integer index lists shared by every compositing path.
+No gradients flow here; the output is integer index lists shared by every compositing path. On
+CPU (with numba) the lists are filled by a counting pass over the Gaussians in depth order
+(:func:`~.composite_numba.tile_lists`), which gives the same lists as the sort without the
+expansion, the sort and the index arithmetic over all pairs.
 """
 
 from __future__ import annotations
@@ -67,6 +70,16 @@ def bin_gaussians(
     hi_t = torch.div(hi.clamp_min(0).long(), tile_size, rounding_mode="floor")
     span = (hi_t - lo_t + 1).clamp_min(0)
     counts = torch.where(visible, span[:, 0] * span[:, 1], torch.zeros_like(span[:, 0]))
+    depth_order = torch.argsort(depths)
+
+    if device.type == "cpu":
+        try:
+            from .composite_numba import tile_lists
+        except ImportError:  # numba missing: the torch expansion and sort below
+            pass
+        else:
+            gauss_ids, tile_offsets = tile_lists(depth_order, lo_t, hi_t, visible, tiles_x, tiles_y)
+            return TileBins(gauss_ids, tile_offsets, tiles_x, tiles_y, tile_size, visible)
 
     gid = torch.repeat_interleave(torch.arange(n, device=device), counts)
     starts = torch.cumsum(counts, 0) - counts
@@ -77,7 +90,7 @@ def bin_gaussians(
     tile_id = tile_y * tiles_x + tile_x
 
     depth_rank = torch.empty(n, dtype=torch.int64, device=device)
-    depth_rank[torch.argsort(depths)] = torch.arange(n, device=device)
+    depth_rank[depth_order] = torch.arange(n, device=device)
     order = torch.argsort(tile_id * n + depth_rank[gid])
     gauss_ids = gid[order]
     per_tile = torch.bincount(tile_id, minlength=tiles_x * tiles_y)

@@ -1,15 +1,20 @@
 """Compiled CPU compositing (Numba) with a hand-written backward, same rule as :mod:`.composite_torch`.
 
-The forward walks each pixel's tile list front to back with per-pixel early termination, threads
-over tiles (``prange``). The backward walks the same list back to front from the final
-transmittance (T_i = T_{i+1} / (1 - alpha_i), alpha <= 0.99 keeps this stable) and writes each
-(tile, Gaussian) pair's gradient into its own row, so threads never share a row; torch then
-sums the rows per Gaussian with ``index_add``. Gradients match the torch path (tests/).
+Threads over tiles (``prange``). Within a tile the forward walks the tile's list once, front to
+back, and each Gaussian updates only the tile's pixels inside its footprint box (from the conic
+actually composited, with margins far above rounding, so that no pixel that could pass the exact
+alpha >= 1/255 test is left out; per-pixel early termination, rows whose pixels have all stopped
+are skipped). Each pixel sees its Gaussians in list order with the same arithmetic as a
+pixel-by-pixel walk, so the sums are bit for bit those of a pixel-major loop. The backward walks
+the same list back to front from each pixel's final transmittance (T_i = T_{i+1} / (1 - alpha_i),
+alpha <= 0.99 keeps this stable) and sums each (tile, Gaussian) pair's gradient over its pixels
+(row-major, in float64) into its own row, so threads never share a row; a serial kernel then
+sums the rows per Gaussian. Gradients match the torch path (tests/).
 """
-
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 
 import numba
@@ -17,25 +22,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from polargs_plugin.threads import numba_threads
+
 from .binning import TileBins
 from .composite_torch import ALPHA_MAX, T_MIN, Composite
 from .projection import ALPHA_MIN, Projection
 
-__all__ = ["composite_numba"]
+__all__ = ["composite_numba", "tile_lists"]
 
 # Columns of the per-pair gradient rows: means2d 2, conics 3, opacity 1, colour 3, normal 3,
 # ray_coeffs 9, ray_offsets 3, depth_bounds 2.
 _GRAD_COLS = 26
 _TILES_PER_CHUNK = 4
-
-
-@numba.njit(inline="always")
-def _alpha(means2d, conics, opacities, g, px, py):
-    dx = px - means2d[g, 0]
-    dy = py - means2d[g, 1]
-    sigma = 0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) + conics[g, 1] * dx * dy
-    raw = opacities[g] * np.exp(-sigma)
-    return min(raw, ALPHA_MAX), raw, dx, dy
 
 
 @numba.njit(inline="always")
@@ -49,148 +47,314 @@ def _ray(ray_coeffs, ray_offsets, g, px, py):
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
+def _footprint_kernel(means2d, conics, opacities, width, height, boxes, sigma_max):
+    """Per Gaussian: the pixel box (u_lo, u_hi, v_lo, v_hi) holding every pixel centre where
+    o exp(-sigma) >= 1/255 could hold, and the bound ``sigma_max`` above which it cannot.
+
+    Both come from the conic actually composited (not the projection's extents), with relative
+    margins far above float64 rounding, so skipping pixels outside the box or with
+    sigma > sigma_max never changes which pairs pass the exact test alpha >= 1/255."""
+    for g in numba.prange(means2d.shape[0]):
+        c0, c1, c2 = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+        det = c0 * c2 - c1 * c1
+        mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+        if not (det > 0.0 and c0 > 0.0 and c2 > 0.0 and abs(mx) < 1e9 and abs(my) < 1e9):
+            # Not positive definite (never binned: extents 0) or non-finite: test every pixel.
+            boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = 0, width - 1, 0, height - 1
+            sigma_max[g] = np.inf
+            continue
+        o = float(opacities[g])
+        level = math.log(o / ALPHA_MIN) if o > 0.0 else -1.0
+        if level < 0.0:  # sigma >= 0, so alpha <= o < 1/255: never contributes
+            boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = 0, -1, 0, -1
+            sigma_max[g] = -1.0
+            continue
+        level = level * (1.0 + 1e-6) + 1e-9
+        sigma_max[g] = level
+        # sigma = 0.5 d^T C d <= level bounds |dx| by sqrt(2 level (C^-1)_xx) = sqrt(2 level c2 / det).
+        hx = math.sqrt(2.0 * level * c2 / det) * (1.0 + 1e-6) + 1e-6
+        hy = math.sqrt(2.0 * level * c0 / det) * (1.0 + 1e-6) + 1e-6
+        boxes[g, 0] = max(int(math.ceil(mx - hx - 0.5)), 0)
+        boxes[g, 1] = min(int(math.floor(mx + hx - 0.5)), width - 1)
+        boxes[g, 2] = max(int(math.ceil(my - hy - 0.5)), 0)
+        boxes[g, 3] = min(int(math.floor(my + hy - 0.5)), height - 1)
+
+
+@numba.njit(inline="always")
+def _clip_box(boxes, g, u0, v0, tile_size, width, height):
+    return (
+        max(boxes[g, 0], u0), min(boxes[g, 1], u0 + tile_size - 1, width - 1),
+        max(boxes[g, 2], v0), min(boxes[g, 3], v0 + tile_size - 1, height - 1),
+    )
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _forward_kernel(
-    means2d, conics, opacities, feats, ray_coeffs, ray_offsets, depth_bounds,
+    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes, sigma_max,
     gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
-    out, trans_final, median, last_slot, median_slot,
+    out_color, out_depth, out_normal, out_alpha, trans_final, median, last_slot, median_slot,
 ):
     num_tiles = tile_offsets.shape[0] - 1
     for tile in numba.prange(num_tiles):
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         u0 = (tile % tiles_x) * tile_size
         v0 = (tile // tiles_x) * tile_size
-        for v in range(v0, min(v0 + tile_size, height)):
-            py = v + 0.5
-            for u in range(u0, min(u0 + tile_size, width)):
-                px = u + 0.5
-                trans = 1.0
-                c0 = c1 = c2 = dsum = n0 = n1 = n2 = 0.0
-                med_z = 0.0
-                med_j = -1
-                last = start
-                for j in range(start, end):
-                    g = gauss_ids[j]
-                    alpha, raw, dx, dy = _alpha(means2d, conics, opacities, g, px, py)
+        tw = min(u0 + tile_size, width) - u0
+        th = min(v0 + tile_size, height) - v0
+        # Per-pixel state of the tile, pixel p = (v - v0) * tile_size + (u - u0).
+        npix = tile_size * tile_size
+        trans = np.ones(npix)
+        acc = np.zeros((npix, 7))  # colour 3, depth sum, normal 3
+        med_z = np.zeros(npix)
+        med_j = np.full(npix, -1, np.int64)
+        last = np.full(npix, start, np.int64)
+        done = np.zeros(npix, np.bool_)
+        row_active = np.full(tile_size, tw, np.int64)  # pixels of each row still compositing
+        active = tw * th
+        for j in range(start, end):
+            if active == 0:
+                break
+            g = gauss_ids[j]
+            ulo, uhi, vlo, vhi = _clip_box(boxes, g, u0, v0, tile_size, width, height)
+            if ulo > uhi or vlo > vhi:
+                continue
+            smax = sigma_max[g]
+            for v in range(vlo, vhi + 1):
+                if row_active[v - v0] == 0:
+                    continue
+                py = v + 0.5
+                for u in range(ulo, uhi + 1):
+                    p = (v - v0) * tile_size + (u - u0)
+                    if done[p]:
+                        continue
+                    px = u + 0.5
+                    dx = px - means2d[g, 0]
+                    dy = py - means2d[g, 1]
+                    sigma = 0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) + conics[g, 1] * dx * dy
+                    if sigma > smax:
+                        continue
+                    alpha = min(opacities[g] * np.exp(-sigma), ALPHA_MAX)
                     if alpha < ALPHA_MIN:
                         continue
-                    next_t = trans * (1.0 - alpha)
+                    tp = trans[p]
+                    next_t = tp * (1.0 - alpha)
                     if next_t < T_MIN:
-                        break
+                        done[p] = True
+                        row_active[v - v0] -= 1
+                        active -= 1
+                        continue
                     t, a0, a1, a2, aa = _ray(ray_coeffs, ray_offsets, g, px, py)
                     z = min(max(t, depth_bounds[g, 0]), depth_bounds[g, 1])
-                    w = alpha * trans
-                    c0 += w * feats[g, 0]
-                    c1 += w * feats[g, 1]
-                    c2 += w * feats[g, 2]
-                    n0 += w * feats[g, 3]
-                    n1 += w * feats[g, 4]
-                    n2 += w * feats[g, 5]
-                    dsum += w * z
-                    if trans >= 0.5 and next_t < 0.5:
-                        med_z = z
-                        med_j = j
-                    trans = next_t
-                    last = j + 1
-                out[0, v, u] = c0
-                out[1, v, u] = c1
-                out[2, v, u] = c2
-                out[3, v, u] = dsum
-                out[4, v, u] = n0
-                out[5, v, u] = n1
-                out[6, v, u] = n2
-                out[7, v, u] = 1.0 - trans
-                trans_final[v, u] = trans
-                median[v, u] = med_z
-                last_slot[v, u] = last
-                median_slot[v, u] = med_j
+                    w = alpha * tp
+                    acc[p, 0] += w * colors[g, 0]
+                    acc[p, 1] += w * colors[g, 1]
+                    acc[p, 2] += w * colors[g, 2]
+                    acc[p, 3] += w * z
+                    acc[p, 4] += w * normals[g, 0]
+                    acc[p, 5] += w * normals[g, 1]
+                    acc[p, 6] += w * normals[g, 2]
+                    if tp >= 0.5 and next_t < 0.5:
+                        med_z[p] = z
+                        med_j[p] = j
+                    trans[p] = next_t
+                    last[p] = j + 1
+        for v in range(v0, v0 + th):
+            for u in range(u0, u0 + tw):
+                p = (v - v0) * tile_size + (u - u0)
+                out_color[0, v, u] = acc[p, 0]
+                out_color[1, v, u] = acc[p, 1]
+                out_color[2, v, u] = acc[p, 2]
+                out_depth[0, v, u] = acc[p, 3]
+                out_normal[0, v, u] = acc[p, 4]
+                out_normal[1, v, u] = acc[p, 5]
+                out_normal[2, v, u] = acc[p, 6]
+                out_alpha[0, v, u] = 1.0 - trans[p]
+                trans_final[v, u] = trans[p]
+                median[v, u] = med_z[p]
+                last_slot[v, u] = last[p]
+                median_slot[v, u] = med_j[p]
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _backward_kernel(
-    means2d, conics, opacities, feats, ray_coeffs, ray_offsets, depth_bounds,
+    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes, sigma_max,
     gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
-    trans_final, last_slot, median_slot, grad_out, grad_median, pair_grads,
+    trans_final, last_slot, median_slot, grad_color, grad_depth, grad_normal, grad_alpha, grad_median, pair_grads,
 ):
     num_tiles = tile_offsets.shape[0] - 1
     for tile in numba.prange(num_tiles):
         start = tile_offsets[tile]
         u0 = (tile % tiles_x) * tile_size
         v0 = (tile // tiles_x) * tile_size
-        for v in range(v0, min(v0 + tile_size, height)):
-            py = v + 0.5
-            for u in range(u0, min(u0 + tile_size, width)):
-                px = u + 0.5
-                gc0, gc1, gc2 = grad_out[0, v, u], grad_out[1, v, u], grad_out[2, v, u]
-                gd = grad_out[3, v, u]
-                gn0, gn1, gn2 = grad_out[4, v, u], grad_out[5, v, u], grad_out[6, v, u]
-                trans = trans_final[v, u]
+        tw = min(u0 + tile_size, width) - u0
+        th = min(v0 + tile_size, height) - v0
+        npix = tile_size * tile_size
+        trans = np.ones(npix)
+        rest = np.zeros(npix)
+        grads = np.zeros((npix, 8), grad_color.dtype)  # colour 3, depth, normal 3, median (input dtype)
+        last = np.full(npix, start, np.int64)
+        med_j = np.full(npix, -1, np.int64)
+        racc = np.empty(pair_grads.shape[1])
+        row_end = np.full(tile_size, start, np.int64)  # one past the last slot any pixel of the row uses
+        end = start
+        for v in range(v0, v0 + th):
+            for u in range(u0, u0 + tw):
+                p = (v - v0) * tile_size + (u - u0)
+                for c in range(3):
+                    grads[p, c] = grad_color[c, v, u]
+                    grads[p, 4 + c] = grad_normal[c, v, u]
+                grads[p, 3] = grad_depth[0, v, u]
+                grads[p, 7] = grad_median[0, v, u]
+                trans[p] = trans_final[v, u]
                 # alpha_out = 1 - T_final, so the pixel's "rest" term starts at -g_alpha * T_final.
-                rest = -grad_out[7, v, u] * trans
-                med_j = median_slot[v, u]
-                for j in range(last_slot[v, u] - 1, start - 1, -1):
-                    g = gauss_ids[j]
-                    alpha, raw, dx, dy = _alpha(means2d, conics, opacities, g, px, py)
+                rest[p] = -grad_alpha[0, v, u] * trans_final[v, u]
+                last[p] = last_slot[v, u]
+                med_j[p] = median_slot[v, u]
+                row_end[v - v0] = max(row_end[v - v0], last_slot[v, u])
+            end = max(end, row_end[v - v0])
+        pair_grads[end : tile_offsets[tile + 1], :] = 0.0  # slots no pixel reaches
+        for j in range(end - 1, start - 1, -1):
+            g = gauss_ids[j]
+            ulo, uhi, vlo, vhi = _clip_box(boxes, g, u0, v0, tile_size, width, height)
+            if ulo > uhi or vlo > vhi:
+                pair_grads[j, :] = 0.0
+                continue
+            smax = sigma_max[g]
+            # This pair's gradient row, summed in float64 over the pixels in row-major order and
+            # written once (each pair belongs to one tile).
+            racc[:] = 0.0
+            touched = False
+            for v in range(vlo, vhi + 1):
+                if j >= row_end[v - v0]:
+                    continue
+                py = v + 0.5
+                for u in range(ulo, uhi + 1):
+                    p = (v - v0) * tile_size + (u - u0)
+                    if j >= last[p]:
+                        continue
+                    px = u + 0.5
+                    dx = px - means2d[g, 0]
+                    dy = py - means2d[g, 1]
+                    sigma = 0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) + conics[g, 1] * dx * dy
+                    if sigma > smax:
+                        continue
+                    raw = opacities[g] * np.exp(-sigma)
+                    alpha = min(raw, ALPHA_MAX)
                     if alpha < ALPHA_MIN:
                         continue
-                    trans = trans / (1.0 - alpha)
+                    tp = trans[p] / (1.0 - alpha)
+                    trans[p] = tp
                     t, a0, a1, a2, aa = _ray(ray_coeffs, ray_offsets, g, px, py)
                     lo, hi = depth_bounds[g, 0], depth_bounds[g, 1]
                     z = min(max(t, lo), hi)
+                    gc0, gc1, gc2, gd = grads[p, 0], grads[p, 1], grads[p, 2], grads[p, 3]
+                    gn0, gn1, gn2 = grads[p, 4], grads[p, 5], grads[p, 6]
                     fg = (
-                        feats[g, 0] * gc0 + feats[g, 1] * gc1 + feats[g, 2] * gc2
-                        + feats[g, 3] * gn0 + feats[g, 4] * gn1 + feats[g, 5] * gn2 + z * gd
+                        colors[g, 0] * gc0 + colors[g, 1] * gc1 + colors[g, 2] * gc2
+                        + normals[g, 0] * gn0 + normals[g, 1] * gn1 + normals[g, 2] * gn2 + z * gd
                     )
-                    w = alpha * trans
-                    d_alpha = trans * fg - rest / (1.0 - alpha)
-                    rest += w * fg
+                    touched = True
+                    w = alpha * tp
+                    rp = rest[p]
+                    d_alpha = tp * fg - rp / (1.0 - alpha)
+                    rest[p] = rp + w * fg
 
-                    row = pair_grads[j]
-                    row[6] += w * gc0
-                    row[7] += w * gc1
-                    row[8] += w * gc2
-                    row[9] += w * gn0
-                    row[10] += w * gn1
-                    row[11] += w * gn2
+                    racc[6] += w * gc0
+                    racc[7] += w * gc1
+                    racc[8] += w * gc2
+                    racc[9] += w * gn0
+                    racc[10] += w * gn1
+                    racc[11] += w * gn2
                     dz = w * gd
-                    if j == med_j:
-                        dz += grad_median[v, u]
+                    if j == med_j[p]:
+                        dz += grads[p, 7]
                     if t < lo:
-                        row[24] += dz
+                        racc[24] += dz
                     elif t > hi:
-                        row[25] += dz
+                        racc[25] += dz
                     else:
                         b0, b1, b2 = ray_offsets[g, 0], ray_offsets[g, 1], ray_offsets[g, 2]
                         s = dz / aa
                         da0 = s * (b0 - 2.0 * t * a0)
                         da1 = s * (b1 - 2.0 * t * a1)
                         da2 = s * (b2 - 2.0 * t * a2)
-                        row[12] += da0 * px
-                        row[13] += da0 * py
-                        row[14] += da0
-                        row[15] += da1 * px
-                        row[16] += da1 * py
-                        row[17] += da1
-                        row[18] += da2 * px
-                        row[19] += da2 * py
-                        row[20] += da2
-                        row[21] += s * a0
-                        row[22] += s * a1
-                        row[23] += s * a2
+                        racc[12] += da0 * px
+                        racc[13] += da0 * py
+                        racc[14] += da0
+                        racc[15] += da1 * px
+                        racc[16] += da1 * py
+                        racc[17] += da1
+                        racc[18] += da2 * px
+                        racc[19] += da2 * py
+                        racc[20] += da2
+                        racc[21] += s * a0
+                        racc[22] += s * a1
+                        racc[23] += s * a2
                     if raw <= ALPHA_MAX:
-                        row[5] += d_alpha * (alpha / opacities[g])
+                        racc[5] += d_alpha * (alpha / opacities[g])
                         d_sigma = -d_alpha * alpha
-                        row[2] += d_sigma * 0.5 * dx * dx
-                        row[3] += d_sigma * dx * dy
-                        row[4] += d_sigma * 0.5 * dy * dy
-                        row[0] -= d_sigma * (conics[g, 0] * dx + conics[g, 1] * dy)
-                        row[1] -= d_sigma * (conics[g, 1] * dx + conics[g, 2] * dy)
+                        racc[2] += d_sigma * 0.5 * dx * dx
+                        racc[3] += d_sigma * dx * dy
+                        racc[4] += d_sigma * 0.5 * dy * dy
+                        racc[0] -= d_sigma * (conics[g, 0] * dx + conics[g, 1] * dy)
+                        racc[1] -= d_sigma * (conics[g, 1] * dx + conics[g, 2] * dy)
+            for c in range(racc.shape[0]):
+                pair_grads[j, c] = racc[c] if touched else 0.0
+
+
+@numba.njit(cache=True)
+def _tile_lists_kernel(depth_order, lo_t, hi_t, visible, tiles_x, num_tiles):
+    n = depth_order.shape[0]
+    offsets = np.zeros(num_tiles + 1, np.int64)
+    for g in range(n):
+        if visible[g]:
+            for ty in range(lo_t[g, 1], hi_t[g, 1] + 1):
+                for tx in range(lo_t[g, 0], hi_t[g, 0] + 1):
+                    offsets[ty * tiles_x + tx + 1] += 1
+    for t in range(num_tiles):
+        offsets[t + 1] += offsets[t]
+    fill = offsets[:-1].copy()
+    gauss_ids = np.empty(offsets[num_tiles], np.int64)
+    for k in range(n):
+        g = depth_order[k]
+        if visible[g]:
+            for ty in range(lo_t[g, 1], hi_t[g, 1] + 1):
+                for tx in range(lo_t[g, 0], hi_t[g, 0] + 1):
+                    t = ty * tiles_x + tx
+                    gauss_ids[fill[t]] = g
+                    fill[t] += 1
+    return gauss_ids, offsets
+
+
+def tile_lists(
+    depth_order: Tensor, lo_t: Tensor, hi_t: Tensor, visible: Tensor, tiles_x: int, tiles_y: int
+) -> tuple[Tensor, Tensor]:
+    """(gauss_ids, tile_offsets) of :class:`~.binning.TileBins` by counting: visible Gaussians,
+    taken in ``depth_order``, are appended to every tile of their tile box [lo_t, hi_t]; the
+    same lists as sorting the pairs by tile_id * N + depth rank."""
+    gauss_ids, offsets = _tile_lists_kernel(
+        _np(depth_order), _np(lo_t), _np(hi_t), _np(visible), tiles_x, tiles_x * tiles_y
+    )
+    return torch.from_numpy(gauss_ids), torch.from_numpy(offsets)
+
+
+@numba.njit(cache=True)
+def _sum_pairs(gauss_ids, pair_grads, grads):
+    """grads[g] += pair_grads[j] for every pair j of Gaussian g, in pair order (what
+    ``index_add_`` did; serial, so the sums do not depend on the thread count)."""
+    for j in range(gauss_ids.shape[0]):
+        g = gauss_ids[j]
+        for c in range(pair_grads.shape[1]):
+            grads[g, c] += pair_grads[j, c]
 
 
 @contextlib.contextmanager
 def _scheduling() -> Iterator[None]:
-    """Threads as many as torch uses (one per pytest-xdist worker, say); tiles handed out a
-    few at a time, since their lists differ a lot in length."""
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    """Threads as the process's thread policy says (:func:`polargs_plugin.threads.numba_threads`:
+    the count of the applied :class:`~polargs_plugin.threads.ThreadPolicy`, never more than torch
+    uses, e.g. one per pytest-xdist worker); tiles handed out a few at a time, since their lists
+    differ a lot in length."""
+    numba.set_num_threads(numba_threads())
     previous = numba.set_parallel_chunksize(_TILES_PER_CHUNK)
     try:
         yield
@@ -203,42 +367,52 @@ def _np(x: Tensor) -> np.ndarray:
 
 
 class _CompositeFunction(torch.autograd.Function):
-    """Inputs: means2d, conics, opacities, feats (colour | normal), ray coefficients (N, 9),
+    """Inputs: means2d, conics, opacities, colours, normals, ray coefficients (N, 9),
     ray offsets, depth bounds, then the non-differentiable bins, width, height.
-    Outputs: (8, H, W) sums (colour 3, depth 1, normal 3, alpha 1) and (1, H, W) median depth."""
+    Outputs: the sums colour (3, H, W), depth (1, H, W), normal (3, H, W), alpha (1, H, W) and
+    the median depth (1, H, W), each its own tensor (no slicing, so no slice backward)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, ray_coeffs, ray_offsets, depth_bounds, bins, width, height):
+    def forward(
+        ctx, means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, bins, width, height
+    ):
         dtype = means2d.dtype
-        inputs = (means2d, conics, opacities, feats, ray_coeffs, ray_offsets, depth_bounds)
+        inputs = (means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds)
         arrays = [_np(x.to(dtype)) for x in inputs]
         grid = (_np(bins.gauss_ids), _np(bins.tile_offsets), bins.tiles_x, bins.tile_size, width, height)
         np_dtype = arrays[0].dtype
-        out = np.zeros((8, height, width), np_dtype)
-        median = np.zeros((height, width), np_dtype)
+        # Every pixel belongs to one tile, so the kernel writes every entry of these.
+        outs = tuple(np.empty((c, height, width), np_dtype) for c in (3, 1, 3, 1, 1))  # colour .. median
         state = (
-            np.ones((height, width), np_dtype),  # final transmittance
-            np.zeros((height, width), np.int64),  # one past the last contributing list slot
-            np.full((height, width), -1, np.int64),  # list slot of the median Gaussian
+            np.empty((height, width), np_dtype),  # final transmittance
+            np.empty((height, width), np.int64),  # one past the last contributing list slot
+            np.empty((height, width), np.int64),  # list slot of the median Gaussian (-1: none)
         )
+        num = arrays[0].shape[0]
+        boxes, sigma_max = np.empty((num, 4), np.int64), np.empty(num, np.float64)
         with _scheduling():
-            _forward_kernel(*arrays, *grid, out, state[0], median, state[1], state[2])
+            _footprint_kernel(arrays[0], arrays[1], arrays[2], width, height, boxes, sigma_max)
+            arrays = (*arrays, boxes, sigma_max)
+            _forward_kernel(*arrays, *grid, *outs[:4], state[0], outs[4][0], state[1], state[2])
         ctx.arrays, ctx.grid, ctx.state = arrays, grid, state
-        ctx.gauss_ids, ctx.dtype = bins.gauss_ids, dtype
-        return torch.from_numpy(out), torch.from_numpy(median)[None]
+        ctx.dtype = dtype
+        return tuple(torch.from_numpy(o) for o in outs)
 
     @staticmethod
-    def backward(ctx, grad_out, grad_median):
+    def backward(ctx, grad_color, grad_depth, grad_normal, grad_alpha, grad_median):
         dtype = ctx.dtype
-        pair_grads = np.zeros((ctx.gauss_ids.shape[0], _GRAD_COLS), ctx.arrays[0].dtype)
+        gauss_ids = ctx.grid[0]
+        pair_grads = np.empty((gauss_ids.shape[0], _GRAD_COLS), np.float64)
+        output_grads = (_np(g.to(dtype)) for g in (grad_color, grad_depth, grad_normal, grad_alpha, grad_median))
         with _scheduling():
-            _backward_kernel(
-                *ctx.arrays, *ctx.grid, *ctx.state, _np(grad_out.to(dtype)), _np(grad_median[0].to(dtype)), pair_grads
-            )
-        num = ctx.arrays[0].shape[0]
-        grads = torch.zeros(num, _GRAD_COLS, dtype=dtype).index_add_(0, ctx.gauss_ids, torch.from_numpy(pair_grads))
-        d_means2d, d_conics, d_opac, d_feats, d_q, d_b, d_bounds = torch.split(grads, [2, 3, 1, 6, 9, 3, 2], dim=1)
-        return d_means2d, d_conics, d_opac[:, 0], d_feats, d_q, d_b, d_bounds, None, None, None
+            _backward_kernel(*ctx.arrays, *ctx.grid, *ctx.state, *output_grads, pair_grads)
+        grads = np.zeros((ctx.arrays[0].shape[0], _GRAD_COLS), np.float64)
+        _sum_pairs(gauss_ids, pair_grads, grads)
+        grads = torch.from_numpy(grads).to(dtype)
+        d_means2d, d_conics, d_opac, d_colors, d_normals, d_q, d_b, d_bounds = torch.split(
+            grads, [2, 3, 1, 3, 3, 9, 3, 2], dim=1
+        )
+        return d_means2d, d_conics, d_opac[:, 0], d_colors, d_normals, d_q, d_b, d_bounds, None, None, None
 
 
 def composite_numba(
@@ -258,11 +432,8 @@ def composite_numba(
     """
     if proj.means2d.device.type != "cpu":
         raise ValueError(f"composite_numba runs on CPU tensors only, got {proj.means2d.device}")
-    feats = torch.cat([colors, proj.normals], dim=-1)
-    image, median = _CompositeFunction.apply(
-        proj.means2d, proj.conics, opacities, feats,
+    color, depth, normal, alpha, median = _CompositeFunction.apply(
+        proj.means2d, proj.conics, opacities, colors, proj.normals,
         proj.ray_coeffs.reshape(-1, 9), proj.ray_offsets, proj.depth_bounds, bins, width, height,
     )
-    return Composite(
-        color=image[0:3], depth=image[3:4], normal=image[4:7], alpha=image[7:8], median_depth=median
-    )
+    return Composite(color=color, depth=depth, normal=normal, alpha=alpha, median_depth=median)

@@ -25,6 +25,8 @@ __all__ = [
     "SH_C0",
     "DEPTH_CLAMP_SIGMAS",
     "ALPHA_MIN",
+    "FOV_CLAMP",
+    "EXTENT_SLACK",
     "Projection",
     "quat_to_rotmat",
     "quat_scale_to_covar",
@@ -39,6 +41,8 @@ __all__ = [
 SH_C0 = 0.28209479177387814  # 1 / (2 sqrt(pi)), the degree-0 real SH basis value
 DEPTH_CLAMP_SIGMAS = 5.0
 ALPHA_MIN = 1.0 / 255.0
+FOV_CLAMP = 1.3  # the EWA Jacobian is evaluated with x/z, y/z limited to 1.3x the field of view
+EXTENT_SLACK = 1e-4  # relative slack of the opacity-aware extents
 
 # Real SH basis constants (degrees 1-3) in the sign convention of 3DGS / gsplat: the real and
 # imaginary parts of the Condon-Shortley complex harmonics, times sqrt(2) for m != 0.
@@ -178,6 +182,9 @@ def shortest_axis_normals(axes_cam: Tensor, scales: Tensor, means_cam: Tensor) -
 
     Returns:
         (N, 3) unit normals with ``n . mean_cam <= 0`` (towards the camera centre).
+
+    Ties in ``scales`` pick the first axis (``torch.argmin``). The compiled projection
+    (:mod:`.projection_numba`) applies the same rule; tests/test_projection_numba.py checks it.
     """
     shortest = torch.argmin(scales, dim=-1)
     normals = torch.gather(axes_cam, 2, shortest[:, None, None].expand(-1, 3, 1))[..., 0]
@@ -234,10 +241,10 @@ def project_gaussians(
 
     # The Jacobian is evaluated with x/z, y/z limited to 1.3x the field of view, as in 3DGS,
     # so that Gaussians far outside the image do not get absurd footprints.
-    lim_x_hi = 1.3 * (width - cx) / fx
-    lim_x_lo = -1.3 * cx / fx
-    lim_y_hi = 1.3 * (height - cy) / fy
-    lim_y_lo = -1.3 * cy / fy
+    lim_x_hi = FOV_CLAMP * (width - cx) / fx
+    lim_x_lo = -FOV_CLAMP * cx / fx
+    lim_y_hi = FOV_CLAMP * (height - cy) / fy
+    lim_y_lo = -FOV_CLAMP * cy / fy
     xz = torch.minimum(torch.maximum(x / z_safe, lim_x_lo), lim_x_hi)
     yz = torch.minimum(torch.maximum(y / z_safe, lim_y_lo), lim_y_hi)
     zero = torch.zeros_like(z_safe)
@@ -261,7 +268,7 @@ def project_gaussians(
     # The 1e-4 relative slack keeps pixels exactly on the boundary despite rounding.
     with torch.no_grad():
         log_ratio = torch.log(opacities.detach().clamp_min(1e-30) / ALPHA_MIN).clamp_min(0.0)
-        extents = (1 + 1e-4) * torch.sqrt(2.0 * log_ratio[:, None] * torch.stack([a, c], dim=-1).detach())
+        extents = (1 + EXTENT_SLACK) * torch.sqrt(2.0 * log_ratio[:, None] * torch.stack([a, c], dim=-1).detach())
         keep = in_range & (log_ratio > 0) & (det > 0)
         extents = torch.where(keep[:, None], extents, torch.zeros_like(extents))
 

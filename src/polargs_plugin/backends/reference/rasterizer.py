@@ -1,10 +1,12 @@
 """The reference Gaussian rasterizer: plain tensors in, :class:`~polargs_plugin.types.RenderOut` out.
 
-Pipeline: :func:`~.projection.project_gaussians` (EWA, differentiable) ->
-:func:`~.binning.bin_gaussians` (no grad, one sort) -> compositing, either the exact pure-torch
-two-pass path (:mod:`.composite_torch`, any device) or the compiled CPU kernel
-(:mod:`.composite_numba`, same rule, hand-written backward). The compositing rule is stated in
-:mod:`.composite_torch`.
+Pipeline: projection (EWA, differentiable) -> :func:`~.binning.bin_gaussians` (no grad, one
+sort) -> compositing, either the exact pure-torch two-pass path (:mod:`.composite_torch`, any
+device) or the compiled CPU kernel (:mod:`.composite_numba`, same rule, hand-written backward).
+The compositing rule is stated in :mod:`.composite_torch`. The projection and SH colour are
+:func:`~.projection.project_gaussians` and :func:`~.projection.eval_sh` (torch, the reference and
+the CUDA path) or, on the numba path, the compiled :func:`~.projection_numba.project_numba` (same
+outputs, hand-written backward).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from .projection import eval_sh, project_gaussians
 __all__ = ["rasterize", "resolve_backend"]
 
 Backend = Literal["auto", "torch", "numba"]
+ProjectionPath = Literal["auto", "torch", "numba"]
 
 
 def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", "numba"]:
@@ -61,6 +64,7 @@ def rasterize(
     far: float = 100.0,
     tile_size: int = 16,
     backend: Backend = "auto",
+    projection: ProjectionPath = "auto",
 ) -> RenderOut:
     """Render N 3D Gaussians into one pinhole camera.
 
@@ -80,6 +84,12 @@ def rasterize(
         tile_size: tile edge in pixels for binning.
         backend: "torch" (exact reference, CPU or CUDA), "numba" (compiled CPU kernel) or
             "auto" (numba on CPU when available, torch otherwise).
+        projection: how the numba path projects and evaluates SH: "auto"/"numba" with the
+            compiled kernel of :mod:`.projection_numba` ("auto" falls back to torch when K or
+            world_to_camera require grad, which that kernel does not give), "torch" with
+            :func:`~.projection.project_gaussians` + :func:`~.projection.eval_sh` and their autograd
+            graph (the path before the compiled projection, kept for comparison; same results to
+            float rounding). The torch compositing path always projects in torch.
 
     Returns:
         :class:`RenderOut`:
@@ -108,12 +118,26 @@ def rasterize(
     if colors.shape[0] != n or colors.shape[-1] != 3 or colors.dim() not in (2, 3):
         raise ValueError(f"colors must be (N,3) or (N,K,3) with N={n}, got {tuple(colors.shape)}")
     path = resolve_backend(backend, means.device)
+    if projection not in ("auto", "torch", "numba"):
+        raise ValueError(f"projection must be 'auto', 'torch' or 'numba', got {projection!r}")
+    if projection == "numba" and path != "numba":
+        raise ValueError("projection='numba' needs the numba compositing path (backend 'numba'/'auto' on CPU)")
+    camera_grad = K.requires_grad or world_to_camera.requires_grad
+    if projection == "numba" and camera_grad:
+        raise ValueError("projection='numba' gives no gradient to K / world_to_camera; use projection='torch'")
 
-    proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far)
-    if colors.dim() == 3:
-        w2c = world_to_camera.to(means)
-        camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
-        colors = eval_sh(colors, means - camera_center)
+    if path == "numba" and projection != "torch" and not camera_grad:
+        from .projection_numba import project_numba
+
+        proj, colors = project_numba(
+            means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far
+        )
+    else:
+        proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far)
+        if colors.dim() == 3:
+            w2c = world_to_camera.to(means)
+            camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
+            colors = eval_sh(colors, means - camera_center)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

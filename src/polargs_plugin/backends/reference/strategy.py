@@ -98,14 +98,22 @@ class DensityControl:
             raise RuntimeError("DensityControl.update: the render has no means2d gradient or radii")
         grad = render.means2d.grad.detach()
         self._ensure(grad.shape[0], grad.device)
+        # Dense masked updates instead of boolean indexing: no nonzero() (a host sync on CUDA), no
+        # gathers; the same values bit for bit (invisible rows add exactly 0; radii are 0 there
+        # and max_radii >= 0).
         visible = render.radii > 0
-        scale = grad.new_tensor([width / 2.0, height / 2.0])
-        norms = (grad[visible] * scale).norm(dim=-1)
-        self.state["grad2d"][visible] += norms
-        self.state["count"][visible] += 1
-        self.state["max_radii"][visible] = torch.maximum(
-            self.state["max_radii"][visible], render.radii[visible].to(self.state["max_radii"])
-        )
+        norms = (grad * self._ndc_scale(width, height, grad)).norm(dim=-1)
+        self.state["grad2d"].add_(torch.where(visible, norms, torch.zeros_like(norms)))
+        self.state["count"].add_(visible.to(self.state["count"].dtype))
+        torch.maximum(self.state["max_radii"], render.radii.to(self.state["max_radii"]), out=self.state["max_radii"])
+
+    def _ndc_scale(self, width: int, height: int, like: Tensor) -> Tensor:
+        """(2,) pixel-to-NDC gradient factors ``(W / 2, H / 2)``, built once per image size."""
+        key = (width, height, like.device, like.dtype)
+        if getattr(self, "_scale_key", None) != key:
+            self._scale_key = key
+            self._scale = like.new_tensor([width / 2.0, height / 2.0])
+        return self._scale
 
     def pad(self, m: int) -> None:
         """Extend the statistics with ``m`` zero rows (after ``GaussianModel.append``)."""

@@ -27,6 +27,7 @@ import dataclasses
 import math
 import random
 import time
+from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,9 +46,10 @@ from polargs_plugin.backends.reference.model import (
 from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
 from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import photometric_loss
+from polargs_plugin.threads import ThreadPolicy
 from polargs_plugin.types import RenderOut, TrainingHooks, View
 
-__all__ = ["TrainConfig", "Trainer", "TrainingHooks", "CHECKPOINT_FORMAT"]
+__all__ = ["TrainConfig", "Trainer", "TrainingHooks", "StepLogs", "CHECKPOINT_FORMAT"]
 
 CHECKPOINT_FORMAT = "polargs-reference-checkpoint-v1"
 
@@ -59,6 +61,12 @@ class TrainConfig:
     ``schedule_scale`` is the ONE factor that shortens every schedule: the density-control
     start / stop / interval / opacity-reset interval, the SH-degree interval and the length of
     the position learning-rate decay. Use :meth:`cpu` for short CPU runs.
+
+    ``threads`` is the process's CPU threading policy (:class:`polargs_plugin.threads.ThreadPolicy`:
+    one thread count for torch and numba, numba's threading layer, OpenMP's wait policy), applied
+    when a :class:`Trainer` is built (docs/speed.md). ``log_every``: every how many iterations
+    :meth:`Trainer.train` reads the progress figures (mean loss over those iterations, PSNR of
+    that iteration's view); in between no figure leaves the device.
     """
 
     iterations: int = 30_000
@@ -77,6 +85,8 @@ class TrainConfig:
     device: str = "cpu"
     backend: str = "auto"
     progress: bool = True
+    threads: ThreadPolicy = field(default_factory=ThreadPolicy)
+    log_every: int = 10
 
     @classmethod
     def paper(cls, **overrides: Any) -> "TrainConfig":
@@ -106,9 +116,10 @@ class TrainConfig:
         data = dict(data)
         lrs = LearningRates(**data.pop("lrs", {}))
         density = DensityConfig(**data.pop("density", {}))
+        threads = ThreadPolicy.from_dict(data.pop("threads", None))
         if "background" in data:
             data["background"] = tuple(data["background"])
-        return cls(lrs=lrs, density=density, **data)
+        return cls(lrs=lrs, density=density, threads=threads, **data)
 
 
 class Trainer:
@@ -123,7 +134,9 @@ class Trainer:
         init_points: optional ((N, 3) points, (N, 3) colours in [0, 1]), e.g. SfM points.
             Default: points on the visual hull of the masks (:func:`init_points_from_masks`).
 
-    Note: constructing a trainer seeds the global torch, numpy and python generators.
+    Note: constructing a trainer seeds the global torch, numpy and python generators and applies
+    ``config.threads`` (process-wide thread counts, numba's threading layer; ``self.threads``
+    says what took effect).
     """
 
     def __init__(
@@ -137,6 +150,9 @@ class Trainer:
             raise ValueError("Trainer: no training views")
         self.config = config or TrainConfig()
         cfg = self.config
+        if cfg.log_every < 1:
+            raise ValueError(f"TrainConfig.log_every must be >= 1, got {cfg.log_every}")
+        self.threads = cfg.threads.apply()  # process-wide thread counts / layer (polargs_plugin.threads)
         _seed_everything(cfg.seed)
         self.device = torch.device(cfg.device)
         self.views = [v.to(self.device) for v in views]
@@ -165,7 +181,7 @@ class Trainer:
         self._order: list[int] = []
         self._prepared = False
         self.polar_maps: Any = None
-        self.last_logs: dict[str, float] = {}
+        self.last_logs: Mapping[str, float] = {}
 
     # --------------------------------------------------------------------- pieces
     def _target(self, view: View) -> Tensor:
@@ -201,10 +217,15 @@ class Trainer:
         return photometric_loss(image, target, ssim_weight=self.config.ssim_weight)
 
     # --------------------------------------------------------------------- training
-    def step(self) -> dict[str, float]:
-        """Run one iteration; returns ``{"loss", "psnr", "num"}`` plus the hooks' logs."""
+    def step(self) -> "StepLogs":
+        """Run one iteration; returns its :class:`StepLogs`: ``{"loss", "psnr", "num"}`` plus the
+        hooks' logs and the refinement counts.
+
+        The figures are read lazily: the loss, the PSNR and the hooks' values stay tensors until a
+        key is read (no host synchronisation, no extra image pass in a step nobody looks at).
+        """
         self._prepare()
-        cfg, model = self.config, self.model
+        model = self.model
         it = self.iteration + 1
         model.update_learning_rate(it)
         if it % self.sh_interval == 0:
@@ -214,11 +235,12 @@ class Trainer:
 
         render = self.render(view)
         loss = self.base_loss(render.color, target)
-        logs: dict[str, float] = {}
+        values: dict[str, Any] = {}
         if self.hooks is not None:
             extra, hook_logs = self.hooks.loss(it, view, render, model.state())
             loss = loss + extra
-            logs.update({k: float(v) for k, v in (hook_logs or {}).items()})
+            # detached, so that the logs do not keep the step's autograd graph alive
+            values.update({k: v.detach() if isinstance(v, Tensor) else v for k, v in (hook_logs or {}).items()})
         loss.backward()
         self.density.update(render, view.width, view.height, it)
         model.optimizer.step()
@@ -231,15 +253,10 @@ class Trainer:
                 if new is not None and len(new) > 0:
                     model.append(new)
                     self.density.pad(len(new))
-                    logs["appended"] = float(len(new))
-            mse = float(((render.color.detach() - target) ** 2).mean())
+                    values["appended"] = float(len(new))
         self.iteration = it
-        logs.update(
-            loss=float(loss.detach()),
-            psnr=_psnr(mse),
-            num=float(model.num),
-            **{k: float(v) for k, v in refined.items() if v},
-        )
+        values.update(num=float(model.num), **{k: float(v) for k, v in refined.items() if v})
+        logs = StepLogs(values, loss=loss.detach(), color=render.color.detach(), target=target)
         self.last_logs = logs
         return logs
 
@@ -253,13 +270,14 @@ class Trainer:
 
         Returns:
             final figures: ``iterations``, ``num_gaussians``, ``psnr`` (mean over all training
-            views, against the masked targets), ``loss`` (smoothed), ``seconds``, ``extent``
-            and the last hook logs.
+            views, against the masked targets), ``loss`` (mean over the last ``log_every``
+            iterations, at most; None if none ran), ``seconds``, ``extent`` and the last hook logs.
         """
         end = self.config.iterations if until is None else int(until)
         self._prepare()
         start_time = time.perf_counter()
-        ema_loss = ema_psnr = None
+        window: list[Tensor] = []  # loss tensors since the figures were last read (no sync per step)
+        mean_loss = psnr = None
         bar = tqdm(
             total=end,
             initial=self.iteration,
@@ -271,11 +289,13 @@ class Trainer:
         with bar:
             while self.iteration < end:
                 logs = self.step()
-                ema_loss = logs["loss"] if ema_loss is None else 0.6 * ema_loss + 0.4 * logs["loss"]
-                ema_psnr = logs["psnr"] if ema_psnr is None else 0.6 * ema_psnr + 0.4 * logs["psnr"]
+                window.append(logs.loss)
                 bar.update(1)
-                if self.iteration % 10 == 0 or self.iteration == end:
-                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", n=self.model.num)
+                if self.iteration % self.config.log_every == 0 or self.iteration == end:
+                    mean_loss = float(torch.stack(window).mean())
+                    psnr = logs["psnr"]
+                    window.clear()
+                    bar.set_postfix(loss=f"{mean_loss:.4f}", psnr=f"{psnr:.2f}", n=self.model.num)
                 if checkpoint is not None and checkpoint_every > 0 and self.iteration % checkpoint_every == 0:
                     self.save_checkpoint(checkpoint)
         seconds = time.perf_counter() - start_time
@@ -285,10 +305,10 @@ class Trainer:
             "iterations": self.iteration,
             "num_gaussians": self.model.num,
             "psnr": self.evaluate(),
-            "loss": ema_loss,
+            "loss": mean_loss,
             "seconds": seconds,
             "extent": self.extent,
-            "hook_logs": {k: v for k, v in self.last_logs.items() if k not in ("loss", "psnr", "num")},
+            "hook_logs": {k: float(v) for k, v in self.last_logs.items() if k not in ("loss", "psnr", "num")},
         }
 
     @torch.no_grad()
@@ -359,6 +379,54 @@ class Trainer:
         random.setstate(_to_tuple(rng["python"]))
         self._sampler.set_state(rng["sampler"].cpu())
         self._order = [int(i) for i in rng["order"]]
+
+
+class StepLogs(Mapping):
+    """One iteration's figures, read lazily: a read-only mapping of float values.
+
+    ``loss`` (the total loss, hooks' terms included), ``psnr`` (dB, of the rendered colour against
+    the view's target), ``num`` (Gaussians after the step), the hooks' logs (``l_*`` ...),
+    ``appended`` and the refinement counts when nonzero. The tensors are kept as they are and turned
+    into floats (a host synchronisation on CUDA; the PSNR's image pass) only when a key is read,
+    once. ``logs.loss`` is the loss tensor itself (detached).
+    """
+
+    __slots__ = ("_values", "loss", "_color", "_target", "_cache")
+
+    def __init__(self, values: dict[str, Any], loss: Tensor, color: Tensor, target: Tensor):
+        self._values = values
+        self.loss = loss
+        self._color = color
+        self._target = target
+        self._cache: dict[str, float] = {}
+
+    def _keys(self) -> list[str]:
+        return [k for k in self._values if k not in ("loss", "psnr")] + ["loss", "psnr"]
+
+    def __getitem__(self, key: str) -> float:
+        if key in self._cache:
+            return self._cache[key]
+        if key == "loss":
+            value = float(self.loss)
+        elif key == "psnr":
+            with torch.no_grad():
+                value = _psnr(float(((self._color - self._target) ** 2).mean()))
+        else:
+            value = float(self._values[key])
+        self._cache[key] = value
+        return value
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._keys())
+
+    def __len__(self) -> int:
+        return len(self._keys())
+
+    def __contains__(self, key: object) -> bool:
+        return key in ("loss", "psnr") or key in self._values
+
+    def __repr__(self) -> str:
+        return f"StepLogs({dict(self)})"
 
 
 def _check_ssim_weight(config: TrainConfig, hooks: TrainingHooks | None) -> None:

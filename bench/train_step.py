@@ -1,0 +1,569 @@
+"""The whole reference training step on CPU, against its parts and today's step (issue 9).
+
+Scene: a bundled scene (``generate_scene``, default glossy_plane_sphere), 24 views 128x128; the
+Gaussians come from a short warm-up training (``TrainConfig.cpu`` schedule, capped at 6000) so
+that opacities and sizes look like a model in training, not like an initialisation. Measured in
+ONE run, each part in a worker subprocess started with the thread policy's environment (so that
+``OMP_WAIT_POLICY`` reaches torch's OpenMP runtime, which reads it at ``import torch``):
+
+- raster: the rasterizer's forward + backward alone (render of the view the next Base step uses,
+  a fixed random weighting of its colour, backward through the activations), SH degree 1 and 3;
+- base: the whole Base step (render, colour loss with SSIM, backward, Adam, density statistics
+  and control: paper schedule at iterations 7001-7000+S, so one refinement in 100 steps), SH 1, 3;
+- reference: today's step as it was before issue 9 (kornia's SSIM, the torch projection with its
+  autograd graph when the rasterizer offers ``projection="torch"``, a float() of every figure and
+  an MSE every step, boolean-indexed density statistics), SH 1;
+- hooks: the step with PolarHooks (PC, L_dn, L_scale on, Dense off; PolarConfig.synthetic()), SH 1;
+  these five are interleaved step by step, so that load changes hit all of them alike;
+- dense: one Dense call (all PatchMatch rounds, filters, seeding) on this scene, after a warm-up
+  call; its share of a whole run with the paper's window (1k-7k every 100 = 61 calls):
+  ``61 t_dense / (iterations t_hooks + 61 t_dense)`` for ``--iterations``;
+- contention: a Base step loop alone, then two of them side by side (two processes); per-step
+  median time side by side over alone;
+- peak RSS: of a single Base training process (the contention loop), and of the measuring worker
+  (which holds four trainers).
+
+The table's figures are wall seconds (mean over the S measured steps; CPU seconds in brackets,
+less sensitive to other processes). The last line is one JSON object.
+
+    .venv/bin/python bench/train_step.py                     # the issue's settings, 2 threads
+    .venv/bin/python bench/train_step.py --numba-layer omp --wait-policy none   # before issue 9
+    .venv/bin/python bench/train_step.py --equivalence 200   # new step vs old step, same seed
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+# Nothing imports torch or numba at module level before a worker has its environment: the
+# orchestrator passes the policy's environment to every worker subprocess.
+
+DENSE_CALLS = 61  # the paper's window, 1000..7000 every 100
+START_ITER = 7000  # measured steps: L_dn on (from 7000), refinement every 100 (until 15000)
+
+
+# ------------------------------------------------------------------------------ helpers
+def _policy(args):
+    from polargs_plugin.threads import ThreadPolicy
+
+    wait = None if args.wait_policy == "none" else args.wait_policy
+    return ThreadPolicy(threads=args.threads, numba_layer=args.numba_layer, wait_policy=wait)
+
+
+def _rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def _scene(args):
+    from polargs_plugin.data.synthetic import generate_scene
+
+    return generate_scene(args.scene, num_views=args.views, width=args.size, height=args.size)
+
+
+def _warm_params(args, views, path: Path) -> dict:
+    """Raw parameters of a briefly trained model (SH degree 3 rows), cached in ``path``."""
+    import torch
+
+    if path.exists():
+        return torch.load(path, weights_only=True)
+    from polargs_plugin.backends.reference.strategy import DensityConfig
+    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+
+    cfg = TrainConfig.cpu(
+        iterations=args.warmup_iterations, sh_degree=3, progress=False, num_init_points=args.gaussians // 3,
+        density=DensityConfig(max_gaussians=args.gaussians, opacity_reset=False), threads=_policy(args),
+    )
+    trainer = Trainer(views, cfg)
+    trainer.train()
+    params = {k: v.detach().clone() for k, v in trainer.model._params().items()}
+    params["extent"] = torch.tensor(trainer.extent)
+    torch.save(params, path)
+    return params
+
+
+def _trainer(args, views, params: dict, sh_degree: int, hooks=None, cls=None, policy: bool = True):
+    """A trainer at iteration START_ITER on the warm Gaussians (paper schedule, density on).
+
+    ``policy=False`` for a package older than the thread policy (its environment still applies)."""
+    from polargs_plugin.backends.reference.model import PARAM_NAMES, GaussianModel
+    from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
+    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+
+    cfg = TrainConfig.paper(
+        sh_degree=sh_degree, progress=False, density=DensityConfig(max_gaussians=args.gaussians),
+        **({"threads": _policy(args)} if policy else {}),
+    )
+    raw = {k: params[k] for k in PARAM_NAMES}
+    raw["sh_rest"] = raw["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]
+    colors = (raw["sh_dc"][:, 0] * 0.28209479177387814 + 0.5).clamp(0, 1)
+    trainer = (cls or Trainer)(views, cfg, hooks=hooks, init_points=(raw["means"], colors))
+    extent = float(params["extent"])
+    trainer.model = GaussianModel(raw, sh_degree=sh_degree, extent=extent, lrs=trainer.model.lrs)
+    trainer.model.active_sh_degree = sh_degree
+    trainer.density = DensityControl(cfg.density.scaled(cfg.schedule_scale), trainer.extent)
+    trainer.iteration = START_ITER
+    return trainer
+
+
+# ------------------------------------------------------------------------ today's step
+def _kornia_loss(pred, target, ssim_weight: float):
+    """The colour loss as it was before issue 9: kornia's SSIM (conv2d + autograd)."""
+    import kornia
+
+    l1 = (pred - target).abs().mean(dim=0, keepdim=True)
+    window = min(11, 2 * min(pred.shape[-2:]) - 1)
+    ssim = kornia.metrics.ssim(pred[None], target[None], window)[0].mean(dim=0, keepdim=True)
+    loss = (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
+    return loss.sum() / loss[0].numel()
+
+
+def _legacy_update(density, render, width: int, height: int, iteration: int) -> None:
+    """DensityControl.update before issue 9 (boolean indexing)."""
+    import torch
+
+    if iteration >= density.config.refine_stop:
+        return
+    grad = render.means2d.grad.detach()
+    density._ensure(grad.shape[0], grad.device)
+    visible = render.radii > 0
+    scale = grad.new_tensor([width / 2.0, height / 2.0])
+    norms = (grad[visible] * scale).norm(dim=-1)
+    density.state["grad2d"][visible] += norms
+    density.state["count"][visible] += 1
+    density.state["max_radii"][visible] = torch.maximum(
+        density.state["max_radii"][visible], render.radii[visible].to(density.state["max_radii"])
+    )
+
+
+def legacy_trainer_class(reference: bool):
+    """A Trainer whose step is the step before issue 9. ``reference=True`` also uses kornia's SSIM
+    and the torch projection (today's path); ``False`` keeps the current loss and rasterizer (to
+    check that the new step changes no result)."""
+    import inspect
+
+    import torch
+
+    from polargs_plugin.backends.reference import trainer as tr
+    from polargs_plugin.backends.reference.rasterizer import rasterize
+
+    torch_projection = reference and "projection" in inspect.signature(rasterize).parameters
+
+    class LegacyTrainer(tr.Trainer):
+        def render(self, view):
+            kwargs = {"projection": "torch"} if torch_projection else {}
+            out = self.model.render(view, background=self.background, backend=self.config.backend, **kwargs)
+            return dataclasses.replace(out, color=out.color.clamp(0, 1))
+
+        def base_loss(self, image, target):
+            if reference:
+                return _kornia_loss(image, target, self.config.ssim_weight)
+            return super().base_loss(image, target)
+
+        def step(self):
+            self._prepare()
+            model = self.model
+            it = self.iteration + 1
+            model.update_learning_rate(it)
+            if it % self.sh_interval == 0:
+                model.active_sh_degree = min(model.active_sh_degree + 1, model.max_sh_degree)
+            index = self._next_view()
+            view, target = self.views[index], self.targets[index]
+            render = self.render(view)
+            loss = self.base_loss(render.color, target)
+            logs: dict[str, float] = {}
+            if self.hooks is not None:
+                extra, hook_logs = self.hooks.loss(it, view, render, model.state())
+                loss = loss + extra
+                logs.update({k: float(v) for k, v in (hook_logs or {}).items()})
+            loss.backward()
+            _legacy_update(self.density, render, view.width, view.height, it)
+            model.optimizer.step()
+            model.optimizer.zero_grad(set_to_none=True)
+            with torch.no_grad():
+                refined = self.density.step(model, it)
+                if self.hooks is not None:
+                    new = self.hooks.densify(it, view, self.render, model.state(), render=tr._detached(render))
+                    if new is not None and len(new) > 0:
+                        model.append(new)
+                        self.density.pad(len(new))
+                        logs["appended"] = float(len(new))
+                mse = float(((render.color.detach() - target) ** 2).mean())
+            self.iteration = it
+            logs.update(loss=float(loss.detach()), psnr=tr._psnr(mse), num=float(model.num),
+                        **{k: float(v) for k, v in refined.items() if v})
+            self.last_logs = logs
+            return logs
+
+    LegacyTrainer.torch_projection = torch_projection
+    return LegacyTrainer
+
+
+# --------------------------------------------------------------------------------- workers
+def _peek_view(trainer) -> int:
+    import torch
+
+    if not trainer._order:
+        trainer._order = torch.randperm(len(trainer.views), generator=trainer._sampler).tolist()
+    return trainer._order[-1]
+
+
+def _raster(trainer, weights) -> None:
+    """Forward + backward of the rasterizer alone on the view the next step of ``trainer`` uses."""
+    index = _peek_view(trainer)
+    out = trainer.render(trainer.views[index])
+    (out.color * weights).sum().backward()
+    trainer.model.optimizer.zero_grad(set_to_none=True)
+
+
+def worker_measure(args) -> dict:
+    import torch
+
+    from polargs_plugin.config import PolarConfig
+    from polargs_plugin.hooks import PolarHooks
+
+    applied = _policy(args).apply()
+    views = _scene(args).views
+    params = _warm_params(args, views, Path(args.tmp) / "warm.pt")
+    cache = str(Path(args.tmp) / "maps")
+    polar = PolarConfig.synthetic()
+    polar.cache_dir = cache
+    polar.densify.enabled = False
+    reference_cls = legacy_trainer_class(reference=True)
+    runners = {
+        "base1": _trainer(args, views, params, 1),
+        "base3": _trainer(args, views, params, 3),
+        "hooks1": _trainer(args, views, params, 1, hooks=PolarHooks(polar)),
+        "reference1": _trainer(args, views, params, 1, cls=reference_cls),
+    }
+    gen = torch.Generator().manual_seed(7)
+    weights = torch.rand(3, args.size, args.size, generator=gen)
+    for t in runners.values():  # warm-up outside the measured window: JIT, preprocess, allocator
+        t._prepare()
+        _raster(t, weights)
+    for name in list(runners):  # one warm-up step each, then back to START_ITER on fresh copies
+        runners[name].step()
+    runners = {
+        "base1": _trainer(args, views, params, 1),
+        "base3": _trainer(args, views, params, 3),
+        "hooks1": _trainer(args, views, params, 1, hooks=runners["hooks1"].hooks),
+        "reference1": _trainer(args, views, params, 1, cls=reference_cls),
+    }
+    times: dict[str, list[tuple[float, float]]] = {k: [] for k in ("raster1", "raster3", *runners)}
+
+    def timed(name, fn):
+        wall, cpu = time.perf_counter(), time.process_time()
+        fn()
+        times[name].append((time.perf_counter() - wall, time.process_time() - cpu))
+
+    for _ in range(args.steps):
+        timed("raster1", lambda: _raster(runners["base1"], weights))
+        timed("base1", runners["base1"].step)
+        timed("hooks1", runners["hooks1"].step)
+        timed("reference1", runners["reference1"].step)
+        timed("raster3", lambda: _raster(runners["base3"], weights))
+        timed("base3", runners["base3"].step)
+    result = {
+        name: {"wall": statistics.fmean(w for w, _ in v), "cpu": statistics.fmean(c for _, c in v),
+               "median": statistics.median(w for w, _ in v)}
+        for name, v in times.items()
+    }
+    result["num_gaussians"] = {k: t.model.num for k, t in runners.items()}
+    result["reference_torch_projection"] = bool(reference_cls.torch_projection)
+
+    # Dense: one call (PatchMatch rounds, filters, seeding) in the paper's window, after a warm-up.
+    dense_cfg = PolarConfig.synthetic()
+    dense_cfg.cache_dir = cache
+    dense_hooks = PolarHooks(dense_cfg)
+    trainer = _trainer(args, views, params, 1, hooks=dense_hooks)
+    trainer._prepare()
+    dense = []
+    for k in range(args.dense_calls + 1):
+        view = trainer.views[k % len(trainer.views)]
+        with torch.no_grad():
+            render = trainer.render(view)
+            wall, cpu = time.perf_counter(), time.process_time()
+            new = dense_hooks.densify(1000, view, trainer.render, trainer.model.state(), render=render)
+            dense.append((time.perf_counter() - wall, time.process_time() - cpu, 0 if new is None else len(new)))
+    dense = dense[1:]  # the first call compiles / loads the numba cache
+    result["dense"] = {"wall": statistics.fmean(d[0] for d in dense), "cpu": statistics.fmean(d[1] for d in dense),
+                       "appended": statistics.fmean(d[2] for d in dense)}
+    result["threads"] = {"torch": torch.get_num_threads(), "numba": applied.numba_threads, "layer": applied.layer(),
+                         "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"), "notes": applied.notes}
+    result["peak_rss_mib"] = _rss_mib()
+    return result
+
+
+def worker_old(args) -> dict:
+    """The Base step (SH 1) of the package as it was before issue 9, imported from
+    ``--reference-src`` (e.g. ``git archive bfaaf45 src | tar -x -C DIR``): today's step exactly,
+    kornia SSIM, torch projection and old compositing included. Same warm Gaussians, same
+    environment (thread counts, wait policy) as the other workers."""
+    import polargs_plugin
+
+    if not str(Path(polargs_plugin.__file__)).startswith(str(Path(args.reference_src).resolve())):
+        raise SystemExit(f"reference worker imported {polargs_plugin.__file__}, not {args.reference_src}")
+    views = _scene(args).views
+    params = _warm_params(args, views, Path(args.tmp) / "warm.pt")
+    trainer = _trainer(args, views, params, 1, policy=False)
+    for _ in range(3):  # JIT and allocator warm-up
+        trainer.step()
+    trainer = _trainer(args, views, params, 1, policy=False)
+    walls, cpus = [], []
+    for _ in range(args.steps):
+        wall, cpu = time.perf_counter(), time.process_time()
+        trainer.step()
+        walls.append(time.perf_counter() - wall)
+        cpus.append(time.process_time() - cpu)
+    return {"wall": statistics.fmean(walls), "cpu": statistics.fmean(cpus), "median": statistics.median(walls),
+            "package": str(Path(polargs_plugin.__file__).parent)}
+
+
+def worker_loop(args) -> dict:
+    """Base steps (SH 1) for ``--seconds`` after a warm-up; per-step wall times."""
+    _policy(args).apply()
+    views = _scene(args).views
+    params = _warm_params(args, views, Path(args.tmp) / "warm.pt")
+    trainer = _trainer(args, views, params, 1)
+    for _ in range(3):
+        trainer.step()
+    if args.start_at:
+        while time.time() < args.start_at:
+            time.sleep(0.01)
+    steps, cpus = [], []
+    end = time.perf_counter() + args.seconds
+    while time.perf_counter() < end:
+        wall, cpu = time.perf_counter(), time.process_time()
+        trainer.step()
+        steps.append(time.perf_counter() - wall)
+        cpus.append(time.process_time() - cpu)
+    return {"median": statistics.median(steps), "mean": statistics.fmean(steps), "steps": len(steps),
+            "cpu_median": statistics.median(cpus), "peak_rss_mib": _rss_mib()}
+
+
+# ---------------------------------------------------------------------------- orchestrator
+def _worker_cmd(args, mode: str, extra: list[str] | None = None) -> list[str]:
+    cmd = [sys.executable, __file__, "--worker", mode, "--tmp", args.tmp]
+    for key in ("scene", "views", "size", "gaussians", "threads", "steps", "numba_layer", "wait_policy",
+                "warmup_iterations", "dense_calls", "seconds"):
+        cmd += [f"--{key.replace('_', '-')}", str(getattr(args, key))]
+    return cmd + (extra or [])
+
+
+def _worker_env(args) -> dict:
+    env = dict(os.environ)
+    for key in ("OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER"):
+        env.pop(key, None)
+    env.update(_policy(args).environment())
+    env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(args.threads)
+    return env
+
+
+def _run_workers(args, mode: str, count: int) -> list[dict]:
+    start_at = time.time() + (45 if count > 1 else 0)  # side by side: both start measuring together
+    env = _worker_env(args)
+    extra = ["--start-at", str(start_at)] if count > 1 else []
+    if mode == "old":  # the old package first on the path; this file's helpers still import from it
+        env["PYTHONPATH"] = os.pathsep.join([str(Path(args.reference_src).resolve()), env.get("PYTHONPATH", "")])
+        extra += ["--reference-src", str(Path(args.reference_src).resolve() / "polargs_plugin")]
+    procs = [subprocess.Popen(_worker_cmd(args, mode, extra),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+             for _ in range(count)]
+    results = []
+    for p in procs:
+        out, err = p.communicate()
+        if p.returncode != 0:
+            sys.stderr.write(err)
+            raise SystemExit(f"worker {mode} failed ({p.returncode})")
+        results.append(json.loads(out.strip().splitlines()[-1]))
+    return results
+
+
+def _prepare_warm(args) -> None:
+    """Train the warm model once (in a worker, with the policy's environment)."""
+    subprocess.run(_worker_cmd(args, "prepare"), check=True, env=_worker_env(args), capture_output=True)
+
+
+def equivalence(args) -> int:
+    """New step vs the step before issue 9 (same loss and rasterizer), and vs today's whole path."""
+    import torch
+
+    from polargs_plugin.backends.reference.model import PARAM_NAMES
+    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+
+    _policy(args).apply()
+    views = _scene(args).views
+    cfg = TrainConfig.cpu(iterations=args.equivalence, progress=False, threads=_policy(args))
+    runs = {"new": Trainer, "old step": legacy_trainer_class(False), "today's path": legacy_trainer_class(True)}
+    curves, params = {}, {}
+    for name, cls in runs.items():
+        trainer = cls(views, cfg)
+        curves[name] = [float(trainer.step()["loss"]) for _ in range(args.equivalence)]
+        params[name] = {k: getattr(trainer.model, k).detach().clone() for k in PARAM_NAMES}
+        print(f"{name:14s}: {args.equivalence} iterations, {trainer.model.num} Gaussians, last loss {curves[name][-1]:.6f}")
+    ok = True
+    for other in ("old step", "today's path"):
+        diff = max(abs(a - b) for a, b in zip(curves["new"], curves[other]))
+        rel = max(abs(a - b) / max(abs(b), 1e-12) for a, b in zip(curves["new"], curves[other]))
+        same = all(p.shape == q.shape and torch.equal(p, q) for p, q in zip(params["new"].values(), params[other].values()))
+        first = next((i + 1 for i, (a, b) in enumerate(zip(curves["new"], curves[other])) if abs(a - b) > 1e-6 * abs(b)),
+                     None)
+        print(f"new vs {other:13s}: loss curve max |diff| {diff:.3e} (relative {rel:.3e}), first iteration "
+              f"differing by more than 1e-6 relative: {first}, first-iteration |diff| "
+              f"{abs(curves['new'][0] - curves[other][0]):.2e}; parameters bitwise equal: {same}")
+        if other == "old step":
+            ok = ok and same and diff == 0.0
+    print(json.dumps({"equivalent_to_old_step": ok, "iterations": args.equivalence}))
+    return 0 if ok else 1
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", default="glossy_plane_sphere")
+    parser.add_argument("--views", type=int, default=24)
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--gaussians", type=int, default=6000)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=100, help="measured steps per configuration (interleaved)")
+    parser.add_argument("--iterations", type=int, default=10_000,
+                        help="run length for the Dense share (the proposed CPU preset's iteration count)")
+    parser.add_argument("--numba-layer", default="workqueue", choices=("workqueue", "omp", "tbb", "default"))
+    parser.add_argument("--wait-policy", default="passive", choices=("passive", "active", "none"))
+    parser.add_argument("--warmup-iterations", type=int, default=150)
+    parser.add_argument("--dense-calls", type=int, default=2, help="timed Dense calls (after one warm-up)")
+    parser.add_argument("--seconds", type=float, default=20.0, help="contention: measured seconds per loop")
+    parser.add_argument("--no-contention", action="store_true")
+    parser.add_argument("--only-contention", action="store_true", help="only the contention loops (quick policy comparisons)")
+    parser.add_argument("--equivalence", type=int, default=0, metavar="N",
+                        help="only check the new step against the old one over N iterations (TrainConfig.cpu)")
+    parser.add_argument("--reference-src", metavar="DIR",
+                        help="the package before issue 9 (DIR/polargs_plugin, e.g. from `git archive bfaaf45 src`): "
+                        "its Base step is timed before and after the other parts and is the reference of "
+                        "speedup_vs_reference (without it, the in-process legacy step is)")
+    parser.add_argument("--worker", choices=("prepare", "measure", "loop", "old"), help=argparse.SUPPRESS)
+    parser.add_argument("--tmp", help=argparse.SUPPRESS)
+    parser.add_argument("--start-at", type=float, default=0.0, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.worker:
+        if args.worker == "prepare":
+            _policy(args).apply()
+            _warm_params(args, _scene(args).views, Path(args.tmp) / "warm.pt")
+            print(json.dumps({"ok": True}))
+        else:
+            work = {"measure": worker_measure, "loop": worker_loop, "old": worker_old}[args.worker]
+            print(json.dumps(work(args)))
+        return 0
+    if args.equivalence:
+        return equivalence(args)
+
+    started = time.perf_counter()
+    load_before = _load()
+    with tempfile.TemporaryDirectory() as tmp:
+        args.tmp = tmp
+        _prepare_warm(args)
+        if args.only_contention:
+            alone = _run_workers(args, "loop", 1)[0]
+            pair = _run_workers(args, "loop", 2)
+            slowdown = statistics.fmean(p["median"] for p in pair) / alone["median"]
+            cpu = statistics.fmean(p["cpu_median"] for p in pair) / alone["cpu_median"]
+            print(f"contention ({args.numba_layer}, OMP_WAIT_POLICY {args.wait_policy}): alone {alone['median']:.4f} s "
+                  f"(cpu {alone['cpu_median']:.4f}), side by side " + ", ".join(
+                      f"{p['median']:.4f} (cpu {p['cpu_median']:.4f})" for p in pair) + f"; load {_load()}")
+            print(json.dumps({"contention_slowdown": slowdown, "contention_cpu_slowdown": cpu, "alone": alone,
+                              "pair": pair, "load_before": load_before, "load_after": _load()}))
+            return 0
+        old = [_run_workers(args, "old", 1)[0]] if args.reference_src else []
+        m = _run_workers(args, "measure", 1)[0]
+        old += _run_workers(args, "old", 1) if args.reference_src else []
+        contention = None
+        if not args.no_contention:
+            alone = _run_workers(args, "loop", 1)[0]
+            pair = _run_workers(args, "loop", 2)
+            contention = {"alone": alone, "pair": pair,
+                          "slowdown": statistics.fmean(p["median"] for p in pair) / alone["median"],
+                          "cpu_slowdown": statistics.fmean(p["cpu_median"] for p in pair) / alone["cpu_median"]}
+    wall = lambda k: m[k]["wall"]  # noqa: E731
+    t_dense = m["dense"]["wall"]
+    share = DENSE_CALLS * t_dense / (args.iterations * wall("hooks1") + DENSE_CALLS * t_dense)
+    rss = max([m["peak_rss_mib"]] + ([contention["alone"]["peak_rss_mib"]] + [p["peak_rss_mib"] for p in contention["pair"]]
+                                     if contention else []))
+    single_rss = contention["alone"]["peak_rss_mib"] if contention else m["peak_rss_mib"]
+    figures = {
+        "step_over_raster": wall("base1") / wall("raster1"),
+        "step_over_raster_sh3": wall("base3") / wall("raster3"),
+        "speedup_vs_reference": (statistics.fmean(o["wall"] for o in old) if old else wall("reference1")) / wall("base1"),
+        "speedup_vs_legacy_step": wall("reference1") / wall("base1"),
+        "hooks_over_base": wall("hooks1") / wall("base1"),
+        "dense_share": share,
+        "contention_slowdown": contention["slowdown"] if contention else None,
+        "contention_cpu_slowdown": contention["cpu_slowdown"] if contention else None,
+        "peak_rss_mib": single_rss,
+        "peak_rss_mib_all_workers": rss,
+        "seconds": {k: round(wall(k), 5) for k in ("raster1", "base1", "hooks1", "reference1", "raster3", "base3")},
+        "dense_call_s": round(t_dense, 3),
+        "iterations_for_dense_share": args.iterations,
+        "threads": m["threads"],
+        "num_gaussians": m["num_gaussians"]["base1"],
+        "reference_torch_projection": m["reference_torch_projection"],
+        "reference_package": old[0]["package"] if old else None,
+        "load_before": load_before,
+        "load_after": _load(),
+    }
+    print(f"train-step bench: {args.scene}, {args.views} views {args.size}x{args.size}, ~{figures['num_gaussians']} "
+          f"Gaussians, {args.threads} threads (torch {m['threads']['torch']}, numba {m['threads']['numba']} "
+          f"'{m['threads']['layer']}', OMP_WAIT_POLICY={m['threads']['OMP_WAIT_POLICY']}), {args.steps} interleaved "
+          f"steps from iteration {START_ITER + 1}; load average {load_before} -> {figures['load_after']} "
+          f"({os.cpu_count()} CPUs)")
+    for note in m["threads"]["notes"]:
+        print(f"  note: {note}")
+    print(f"{'part':44s} {'s/step':>8s} {'(cpu s)':>9s} {'median':>8s}")
+    rows = [("raster1", "rasterizer fwd+bwd alone, SH 1"), ("base1", "Base step, SH 1"),
+            ("hooks1", "step with PolarHooks (PC, L_dn, L_scale), SH 1"),
+            ("reference1", "legacy step in this package (kornia SSIM), SH 1"),
+            ("raster3", "rasterizer fwd+bwd alone, SH 3"), ("base3", "Base step, SH 3")]
+    for key, label in rows:
+        print(f"{label:44s} {m[key]['wall']:8.4f} {m[key]['cpu']:9.4f} {m[key]['median']:8.4f}")
+    for i, o in enumerate(old):
+        print(f"{'package before issue 9, Base step, SH 1 (' + ('before' if i == 0 else 'after') + ')':44s} "
+              f"{o['wall']:8.4f} {o['cpu']:9.4f} {o['median']:8.4f}")
+    print(f"{'one Dense call (PatchMatch, filters, seeding)':44s} {t_dense:8.3f} {m['dense']['cpu']:9.3f} "
+          f"({m['dense']['appended']:.0f} Gaussians appended)")
+    if contention:
+        print(f"contention: Base step median alone {contention['alone']['median']:.4f} s "
+              f"(cpu {contention['alone']['cpu_median']:.4f}), side by side "
+              + ", ".join(f"{p['median']:.4f} (cpu {p['cpu_median']:.4f})" for p in contention["pair"]) + " s; "
+              f"CPU seconds per step x{contention['cpu_slowdown']:.2f} (spinning workers inflate it)")
+    targets = [
+        ("step / raster fwd+bwd (SH 1)", figures["step_over_raster"], "<= 1.5"),
+        ("step / raster fwd+bwd (SH 3)", figures["step_over_raster_sh3"], "<= 1.5"),
+        ("today's step / Base step" + (" (package before issue 9)" if old else " (legacy step)"),
+         figures["speedup_vs_reference"], ">= 4"),
+        ("hooks step / Base step", figures["hooks_over_base"], "<= 1.15"),
+        (f"Dense share of a {args.iterations}-iteration run", figures["dense_share"], "<= 0.25"),
+        ("contention slowdown (2 trainings / alone)", figures["contention_slowdown"], "<= 2.5"),
+        ("peak RSS of one training, MiB", figures["peak_rss_mib"], "<= 2048"),
+    ]
+    print(f"{'figure':44s} {'value':>8s}  target")
+    for label, value, target in targets:
+        print(f"{label:44s} {'n/a' if value is None else f'{value:8.3f}':>8s}  {target}")
+    figures["bench_seconds"] = round(time.perf_counter() - started, 1)
+    print(json.dumps(figures))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
