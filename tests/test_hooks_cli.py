@@ -21,7 +21,7 @@ def test_preprocess_writes_pictures_and_reuses_cache(tmp_path, capsys):
         for name in PICTURES:
             picture = cv2.imread(str(out / "pictures" / f"{view.name}_{name}.png"))
             assert picture is not None and picture.shape == (32, 32, 3)
-    cache = sorted((out / "cache").glob("*.pt"))
+    cache = sorted((out / "maps").glob("*.pt"))
     assert len(cache) == 2
     stamps = [path.stat().st_mtime_ns for path in cache]
     # The masks picture tints specular pixels magenta: compare with the cached mask.
@@ -32,8 +32,9 @@ def test_preprocess_writes_pictures_and_reuses_cache(tmp_path, capsys):
     assert (torch.from_numpy(tinted) >= maps["specular_mask"][0]).all()
 
     assert main(["preprocess", str(dataset), "--out", str(out), "--no-pictures"]) == 0
-    assert [path.stat().st_mtime_ns for path in sorted((out / "cache").glob("*.pt"))] == stamps
-    assert "specular" in capsys.readouterr().out
+    assert [path.stat().st_mtime_ns for path in sorted((out / "maps").glob("*.pt"))] == stamps
+    printed = capsys.readouterr().out
+    assert "specular" in printed and "maps: reused 2 of 2 views" in printed
 
 
 def test_preprocess_bad_input_is_reported_and_writes_nothing(tmp_path, capsys):
@@ -48,3 +49,19 @@ def test_preprocess_bad_input_is_reported_and_writes_nothing(tmp_path, capsys):
     assert main(["preprocess", str(empty), "--out", str(out), "--config", str(bad_config)]) == 2
     err = capsys.readouterr().err
     assert str(bad_config) in err and "no_such_knob" in err
+
+
+def test_preprocess_takes_the_train_settings_file_and_presets(tmp_path, capsys):
+    scene = generate_scene("glossy_plane_sphere", num_views=2, width=16, height=16)
+    dataset = write_scene(scene, tmp_path / "scene")
+    settings = tmp_path / "settings.json"
+    settings.write_text(json.dumps({"polar": {"correction": {"mahalanobis_threshold": 0.5}}, "train": {"iterations": 5}}))
+    assert main(["preprocess", str(dataset), "--config", str(settings), "--preset", "real", "--no-pictures"]) == 0
+    assert len(list((dataset / "preprocessed" / "maps").glob("*.pt"))) == 2  # where `polargs train` looks
+    settings.write_text(json.dumps({"polar": {"correction": {"mahalanobis": 0.5}}}))
+    assert main(["preprocess", str(dataset), "--config", str(settings)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {settings}: unknown key 'polar.correction.mahalanobis'") and err.count("\n") == 1
+    assert main(["preprocess", str(dataset), "--bit-depth", "12"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {dataset}: --bit-depth: only for polar folders") and "polargs dataset" in err

@@ -177,3 +177,61 @@ def test_mosaic_from_intensities_rejects_bad_shapes():
         mosaic_from_intensities(torch.zeros(4, 3, 6, 8), "rgb")
     with pytest.raises(ValueError, match=r"\(\.\.\., 4, 1, H, W\)"):
         mosaic_from_intensities(torch.zeros(4, 3, 4, 4), "mono")
+
+
+# ------------------------------------------------------------------ mono / colour from the frame
+def _real_crops():
+    import cv2
+    from pathlib import Path
+
+    folder = Path(__file__).parent / "data" / "polanalyser"
+    return {p.name: cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in sorted(folder.glob("*.png"))}
+
+
+def test_real_mono_frames_show_no_bayer_colour_structure():
+    from polargs_plugin.optics.mosaic import check_mosaic_pattern, classify_mosaic, mosaic_colour_evidence
+
+    crops = _real_crops()
+    assert len(crops) == 5
+    for name, raw in crops.items():
+        evidence = mosaic_colour_evidence(raw, source=name)
+        assert evidence is not None and evidence < 0.02, name
+        assert classify_mosaic(evidence) == "mono"
+        assert check_mosaic_pattern(raw, "auto", source=name) == "mono"
+        with pytest.raises(PolarInputError, match=rf"{name}: read as a colour .* looks like a mono"):
+            check_mosaic_pattern(raw, "rgb", source=name)
+        # also at 12 bits in 16-bit words (the scale does not matter)
+        assert check_mosaic_pattern(raw.astype(np.uint16) * 16, "mono", bit_depth=12) == "mono"
+
+
+@pytest.mark.parametrize("name", ["glossy_plane_sphere", "shiny_torus", "bumpy_mixed", "torus_knot"])
+def test_synthetic_mosaics_from_the_writer_are_told_apart(name):
+    from polargs_plugin.data.synthetic import generate_scene
+    from polargs_plugin.optics.mosaic import check_mosaic_pattern, classify_mosaic, mosaic_colour_evidence
+
+    scene = generate_scene(name, num_views=4, width=128, height=128)
+    quantise = lambda x: np.rint(np.clip(x.numpy(), 0, 1) * 255).astype(np.uint8)  # noqa: E731
+    colours, monos = [], []
+    for images in scene.angle_images:
+        images = images.double()
+        colours.append(mosaic_colour_evidence(quantise(mosaic_from_intensities(images, "rgb"))))
+        monos.append(mosaic_colour_evidence(quantise(mosaic_from_intensities(images.mean(1, keepdim=True), "mono"))))
+    # a mono mosaic never looks colour; the colour mosaics of the bundled (coloured) scenes look
+    # colour in most views (a near-grey view may be undecided, never mono)
+    assert all(classify_mosaic(m) != "rgb" for m in monos) and max(monos) < 0.2
+    assert all(classify_mosaic(c) != "mono" for c in colours) and sum(classify_mosaic(c) == "rgb" for c in colours) >= 3
+    raw = quantise(mosaic_from_intensities(scene.angle_images[int(np.argmax(colours))].double(), "rgb"))
+    with pytest.raises(PolarInputError, match="read as a mono .* looks like a colour"):
+        check_mosaic_pattern(raw, "mono", source="frame.png")
+
+
+def test_pattern_check_cannot_tell_flat_or_tiny_frames():
+    from polargs_plugin.optics.mosaic import check_mosaic_pattern, mosaic_colour_evidence
+
+    flat = np.full((64, 64), 100, np.uint8)
+    assert mosaic_colour_evidence(np.zeros((8, 8), np.uint8)) is None
+    assert check_mosaic_pattern(flat, "rgb") == "rgb" and check_mosaic_pattern(flat, "mono") == "mono"
+    with pytest.raises(PolarInputError, match="flat.png: cannot tell"):
+        check_mosaic_pattern(flat, "auto", source="flat.png")
+    with pytest.raises(PolarInputError, match="unknown mosaic pattern 'bayer'"):
+        check_mosaic_pattern(flat, "bayer", source="flat.png")

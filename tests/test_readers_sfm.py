@@ -80,3 +80,20 @@ def test_sfm_recovers_cameras_up_to_similarity(tmp_path):
         residual = R_true @ rotation @ v.world_to_camera.numpy()[:3, :3].T
         assert math.degrees(math.acos(np.clip((np.trace(residual) - 1) / 2, -1, 1))) < 1.5
         assert abs(v.K[0, 0].item() / F - 1) < 0.03
+
+
+def test_sfm_failures_say_how_many_views_it_needs(tmp_path):
+    from polargs_plugin.io import PolarInputError
+
+    rng = np.random.default_rng(0)
+    for i in range(3):  # three unrelated noise pictures: nothing to match
+        s0 = cv2.resize(rng.uniform(0.1, 0.9, (12, 16)), (W // 4, H // 4), interpolation=cv2.INTER_NEAREST)
+        for beta in (0, 45, 90, 135):
+            cv2.imwrite(str(tmp_path / f"v{i}_{beta}.png"), np.rint(s0 / 2 * 255).astype(np.uint8))
+    with pytest.raises(PolarInputError, match=r"SfM registered [0-2] of 3 images; it needs at least 3 overlapping views"):
+        read_polar_folder(tmp_path, sfm=True)
+    assert find_colmap_model(tmp_path) is None  # no half-written model
+    for beta in (0, 45, 90, 135):
+        (tmp_path / f"v2_{beta}.png").unlink()
+    with pytest.raises(PolarInputError, match=r"SfM got 2 image\(s\) \(v0, v1\); it needs at least 3 overlapping views"):
+        read_polar_folder(tmp_path, sfm=True)

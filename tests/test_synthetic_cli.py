@@ -53,3 +53,22 @@ def test_generate_rejects_bad_arguments(tmp_path, extra, capsys):
     assert info.value.code == 2
     assert "error" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_generate_refuses_a_non_empty_folder_and_overwrite_replaces_the_scene(tmp_path, capsys):
+    out = tmp_path / "scene"
+    assert main(["generate", "--scene", "shiny_torus", "--out", str(out), "--views", "3", "--size", "16x16"]) == 0
+    capsys.readouterr()
+    assert main(["generate", "--scene", "bumpy_mixed", "--out", str(out), "--views", "1", "--size", "16x16"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {out}: exists and is not empty") and "--overwrite" in err
+    assert len(read_scene_folder(out)) == 3
+    assert main(["generate", "--scene", "bumpy_mixed", "--out", str(out), "--views", "1", "--size", "16x16",
+                 "--overwrite"]) == 0
+    assert len(read_scene_folder(out)) == 1  # no view of the previous scene left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no staging folder left
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "mine.txt").write_text("keep")
+    assert main(["generate", "--scene", "shiny_torus", "--out", str(other), "--small", "--overwrite"]) == 2
+    assert "not" in capsys.readouterr().err and (other / "mine.txt").read_text() == "keep"

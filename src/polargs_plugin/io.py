@@ -1,14 +1,31 @@
-"""File helpers shared by every module: atomic writes and input errors that name the file."""
+"""File helpers shared by every module: atomic writes, input errors that name the file, writability
+checks and folder locks.
+
+Files written through :func:`atomic_path` / :func:`atomic_write` appear complete or not at all and
+get the mode an ordinary ``open()`` would give them (``0o666`` less the process umask), not the
+``0o600`` of the temporary file they are written as.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import socket
 import tempfile
+import time
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO, Any, Iterator
 
-__all__ = ["PolarInputError", "atomic_write", "atomic_path"]
+__all__ = [
+    "PolarInputError",
+    "atomic_write",
+    "atomic_path",
+    "current_umask",
+    "check_writable",
+    "FolderLock",
+    "FolderLockedError",
+]
 
 
 class PolarInputError(ValueError):
@@ -20,12 +37,27 @@ class PolarInputError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
+def current_umask() -> int:
+    """The process umask, read without changing it where the system allows (Linux /proc)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: set and restore (not thread-safe, but brief)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
 
     For writers that take a file name (cv2.imwrite, np.save, open3d). The temporary name keeps
     the suffix so that format detection by extension still works. Nothing is left behind on error.
+    The file gets mode ``0o666 & ~umask`` (mkstemp creates it ``0o600``).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -34,6 +66,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        if tmp_path.exists():  # a writer may have replaced the file; give it the ordinary mode
+            os.chmod(tmp_path, 0o666 & ~current_umask())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
@@ -46,3 +80,159 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
     with atomic_path(path) as tmp:
         with open(tmp, mode) as handle:
             yield handle
+
+
+def check_writable(folder: str | os.PathLike) -> Path:
+    """Create ``folder`` (and its parents) if needed and prove that files can be written in it.
+
+    A test file is created and removed, so a read-only mount, a full disk or missing permissions
+    are found before any long computation, not after it.
+
+    Returns:
+        ``folder`` as a Path.
+
+    Raises:
+        PolarInputError: naming the folder (or the file in its way) and the reason.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise PolarInputError(folder, "exists and is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".polargs-write-test-", dir=folder)
+        try:
+            os.write(fd, b"polargs")
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as err:
+        raise PolarInputError(folder, f"cannot write there ({err.strerror or type(err).__name__})") from None
+    return folder
+
+
+class FolderLockedError(PolarInputError):
+    """The folder is locked by a live process; ``holder`` is the lock file's content."""
+
+    def __init__(self, path: str | os.PathLike, problem: str, holder: dict[str, Any]):
+        super().__init__(path, problem)
+        self.holder = holder
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    except OSError:
+        return True
+    return True
+
+
+class FolderLock:
+    """An exclusive lock on a folder: a lock file holding the holder's pid, host and start time.
+
+    The file is created atomically, complete with its content (written beside it, then
+    hard-linked, which fails when a lock exists); :meth:`release` removes it if it is still ours.
+    A lock left by a process that no longer runs on this host (killed with SIGKILL, a power cut)
+    is *stale*: it is taken over and :attr:`note` says so. A lock of a live process, or of another
+    host (whose processes cannot be checked), raises :class:`FolderLockedError` naming the holder.
+
+    Usage::
+
+        with FolderLock(run_dir / "train.lock", command="polargs train ..."):
+            ...
+    """
+
+    def __init__(self, path: str | os.PathLike, command: str = ""):
+        self.path = Path(path)
+        self.command = command
+        self.note: str | None = None
+        self._content: dict[str, Any] | None = None
+
+    def describe(self, holder: dict[str, Any]) -> str:
+        started = holder.get("started")
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started)) if isinstance(started, (int, float)) else "?"
+        text = f"pid {holder.get('pid', '?')} on host {holder.get('host', '?')} since {when}"
+        if holder.get("command"):
+            text += f" ({holder['command']})"
+        return text
+
+    def _read(self) -> dict[str, Any] | None:
+        try:
+            data = json.loads(self.path.read_text())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError):
+            return {}
+        return data if isinstance(data, dict) else {}
+
+    def acquire(self) -> "FolderLock":
+        content = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time(), "command": self.command}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(3):
+            fd, tmp = tempfile.mkstemp(prefix=".lock-", dir=self.path.parent)
+            try:
+                with os.fdopen(fd, "w") as handle:
+                    json.dump(content, handle)
+                os.chmod(tmp, 0o666 & ~current_umask())
+                try:
+                    os.link(tmp, self.path)  # atomic; fails if the lock exists
+                    self._content = content
+                    return self
+                except FileExistsError:
+                    pass
+                except OSError:  # no hard links on this file system: O_EXCL create
+                    try:
+                        excl = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+                    except FileExistsError:
+                        pass
+                    else:
+                        with os.fdopen(excl, "w") as handle:
+                            json.dump(content, handle)
+                        self._content = content
+                        return self
+            finally:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(tmp)
+            holder = self._read()
+            if holder is None:
+                continue  # released meanwhile: try again
+            stale = (
+                holder.get("host") == socket.gethostname()
+                and isinstance(holder.get("pid"), int)
+                and not _pid_alive(holder["pid"])
+            )
+            if not holder:  # unreadable or empty: stale only when old (a writer is not that slow)
+                with contextlib.suppress(OSError):
+                    stale = time.time() - self.path.stat().st_mtime > 60
+                if not stale:
+                    raise FolderLockedError(self.path, "locked (unreadable lock file); delete it if no polargs command uses the folder", holder)
+            if not stale:
+                raise FolderLockedError(
+                    self.path,
+                    f"the folder is in use by {self.describe(holder)}; wait for it to finish, or delete "
+                    "this lock file if that process is gone",
+                    holder,
+                )
+            self.note = f"{self.path}: took over the stale lock of {self.describe(holder)}, which no longer runs"
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
+        raise PolarInputError(self.path, "could not take the lock (it keeps changing hands)")
+
+    def release(self) -> None:
+        """Remove the lock file if it still holds this process's lock."""
+        if self._content is None:
+            return
+        holder = self._read()
+        if holder is not None and holder.get("pid") == self._content["pid"] and holder.get("started") == self._content["started"]:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
+        self._content = None
+
+    def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()

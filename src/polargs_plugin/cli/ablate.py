@@ -13,6 +13,8 @@ from typing import Any
 
 from polargs_plugin.ablation.variants import DESCRIPTIONS, PRESETS, VARIANTS
 
+CLUSTERS = ("auto", "slurm", "local", "debug")
+
 _INITS = ("hull", "sfm", "random")
 
 _DESCRIPTION = """\
@@ -30,11 +32,20 @@ supported format as NAME=PATH:GT_MESH, NAME=PATH or PATH (GT mesh: gt_mesh.ply o
 the folder).
 
 Resumable: run folders are complete or absent; finished runs are skipped when the command runs
-again. A failed run leaves OUT/logs/NAME.log, the others go on; the exit status is 1 if any failed.
+again, and an interrupted run resumes from its last periodic checkpoint. A failed run leaves
+OUT/logs/NAME.log, the others go on; the exit status is 1 if any failed.
+
+Executors: --executor local (default) runs the cells in a process pool on this machine, one run per
+visible GPU when CUDA is available; --executor submitit submits them as ONE Slurm job array (or
+submitit's local / debug executors) and records the jobs in OUT/jobs.json: submitting again
+skips done and running cells, --retry-failed resubmits only the failed ones. See docs/cluster.md.
 
 Examples:
   polargs ablate --scenes glossy_plane_sphere,shiny_torus --variants all --seeds 0,1 --out runs/ablation
   polargs ablate --scenes gps=data/gps:data/gps/gt.ply --variants base,reg,full --out runs/gps --jobs 2
+  polargs ablate --scenes shiny_torus --variants all --seeds 0,1,2 --preset paper --out runs/paper \\
+                 --executor submitit --slurm-partition gpu --gpus-per-task 1 --cpus-per-task 8 --timeout-min 120
+  polargs ablate --status runs/paper                        # done / running / failed / missing, with logs
   polargs ablate --out runs/ablation --gather-only          # table + report from the run folders
 """
 
@@ -59,6 +70,16 @@ def _positive(text: str) -> int:
     return value
 
 
+def _non_negative(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -72,7 +93,8 @@ def _positive_float(text: str) -> float:
 def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "0.02: 600 iterations") -> None:
     """Options shared by ``polargs ablate`` and ``polargs demo``."""
     p.add_argument("--jobs", type=_positive, default=None, metavar="N",
-                   help="runs in parallel (default: cores // --threads-per-run); 1 runs in this process")
+                   help="runs in parallel (default: one per GPU when CUDA is available, see --gpus; else cores // --threads-per-run); "
+                   "1 runs in this process")
     p.add_argument("--threads-per-run", type=_positive, default=1, metavar="T", help="torch threads of each run (default 1)")
     p.add_argument("--preset", choices=PRESETS, default="cpu",
                    help="cpu: every schedule x --factor (TrainConfig.cpu, PolarConfig.cpu_demo); paper: vanilla 3DGS "
@@ -95,6 +117,12 @@ def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "0.02
     p.add_argument("--eval-samples", type=_positive, default=1_000_000, metavar="N", help="points sampled per mesh for Chamfer (default 1e6)")
     p.add_argument("--no-cull", action="store_true", help="do not cull predicted points to the view masks before Chamfer")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
+    p.add_argument("--gpus", default=None, metavar="IDS",
+                   help="local executor: GPUs to spread the runs over, one run per GPU at a time (comma-separated ids, "
+                   "or none; default: every visible GPU when CUDA is available)")
+    p.add_argument("--checkpoint-every", type=_non_negative, default=None, metavar="N",
+                   help="iterations between the training checkpoints an interrupted run resumes from "
+                   "(default: 10 per run; 0: none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one line per finished run is still printed)")
 
 
@@ -108,10 +136,38 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--scenes", default=None, metavar="A,B,...", help="comma-separated scenes (see above)")
     p.add_argument("--variants", default="all", metavar="V,...", help=f"comma-separated subset of {','.join(VARIANTS)}, or all (default)")
     p.add_argument("--seeds", default="0", metavar="S,...", help="comma-separated training seeds (default 0)")
-    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="the ablation folder (run folders, logs, results, report)")
+    p.add_argument("--out", type=Path, metavar="DIR", help="the ablation folder (run folders, logs, results, report); required")
     p.add_argument("--gather-only", action="store_true", help="run nothing: gather the run folders of OUT and write the report")
     p.add_argument("--no-report", action="store_true", help="write the results files but not report.md and its pictures")
+    p.add_argument("--status", type=Path, default=None, metavar="DIR",
+                   help="run nothing: list the cells of DIR as done / running / failed / missing, with their logs and jobs")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="run (or resubmit) only the cells that failed; with --executor submitit the failed cells are "
+                   "otherwise left alone")
     add_run_options(p)
+    g = p.add_argument_group("executors (docs/cluster.md)")
+    g.add_argument("--executor", choices=("local", "submitit"), default="local",
+                   help="local: a process pool on this machine (default); submitit: one job per cell, all in one Slurm "
+                   "job array (needs pip install 'polargs_plugin[cluster]')")
+    g.add_argument("--submitit-cluster", choices=CLUSTERS, default="auto",
+                   help="submitit's executor: slurm, local (a process per cell on this machine), debug (in this process, "
+                   "one after the other) or auto (slurm when srun is found, else local; default)")
+    g.add_argument("--slurm-partition", default=None, metavar="NAME", help="Slurm partition")
+    g.add_argument("--gpus-per-task", type=_non_negative, default=None, metavar="N", help="GPUs per cell (default 1 on Slurm, 0 otherwise)")
+    g.add_argument("--cpus-per-task", type=_positive, default=None, metavar="N", help="CPUs per cell (default: --threads-per-run)")
+    g.add_argument("--timeout-min", type=_positive, default=240, metavar="MIN",
+                   help="time limit of a job; a job that reaches it is checkpointed and requeued, up to 3 times (default 240)")
+    g.add_argument("--mem-gb", type=_positive_float, default=None, metavar="GB", help="memory per job (default: the partition's)")
+    g.add_argument("--slurm-array-parallelism", type=_positive, default=None, metavar="N", help="at most N cells running at once")
+    g.add_argument("--slurm-additional-parameters", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
+                   help="more sbatch options, e.g. account=proj qos=high constraint=a100 (repeatable)")
+    g.add_argument("--slurm-setup", action="append", default=[], metavar="CMD",
+                   help="shell line run in the job before python, e.g. 'module load cuda' (repeatable)")
+    wait = g.add_mutually_exclusive_group()
+    wait.add_argument("--wait", dest="wait", action="store_true", default=None,
+                      help="wait for the jobs, then gather and write the report (default with the local and debug clusters)")
+    wait.add_argument("--no-wait", dest="wait", action="store_false",
+                      help="submit and return (default on Slurm): follow with --status, then --gather-only")
     p.set_defaults(func=run)
 
 
@@ -187,7 +243,8 @@ def build_cells(args: argparse.Namespace, scene_texts: list[str], variants: list
         cells += expand([scene], variants, seeds, out, inits, preset=args.preset, factor=args.factor,
                         train_overrides=train_overrides, polar_overrides=polar_overrides, mesh=mesh,
                         eval={"num_samples": args.eval_samples, "cull": not args.no_cull},
-                        threads=args.threads_per_run, device=args.device)
+                        threads=args.threads_per_run, device=args.device,
+                        checkpoint_every=getattr(args, "checkpoint_every", None))
     for variant in dict.fromkeys(variants):  # overrides are checked before anything runs
         probe = next(c for c in cells if c.variant == variant)
         try:
@@ -199,15 +256,52 @@ def build_cells(args: argparse.Namespace, scene_texts: list[str], variants: list
 
 def execute(args: argparse.Namespace, cells: list, command: str) -> int:
     """Run the grid, gather, write the report, print the table; the exit status."""
-    from polargs_plugin.ablation.gather import gather
+    from polargs_plugin.ablation.executors import ExecutorUnavailable, grid_status, visible_gpus
     from polargs_plugin.ablation.grid import default_jobs, run_grid, write_grid_file
 
     out: Path = args.out
-    jobs = args.jobs or default_jobs(args.threads_per_run)
     start = time.perf_counter()
+    if getattr(args, "executor", "local") == "submitit":
+        try:
+            return _submit(args, cells, command, start)
+        except ExecutorUnavailable as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+    try:
+        gpus = visible_gpus(getattr(args, "gpus", None), args.device)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    jobs = args.jobs or default_jobs(args.threads_per_run, gpus)
     write_grid_file(cells, out)
-    print(f"ablation: {len(cells)} runs in {out} ({jobs} at a time, {args.threads_per_run} thread(s) each)", file=sys.stderr, flush=True)
-    result = run_grid(cells, jobs=jobs, progress=not args.quiet)
+    todo, skipped_running = list(cells), []
+    if getattr(args, "retry_failed", False) or (out / "jobs.json").is_file():
+        try:
+            states = {s.name: s.state for s in grid_status(out, cells)}
+        except ExecutorUnavailable as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        skipped_running = [c for c in cells if states[c.name] == "running"]  # a cluster job runs it
+        todo = [c for c in cells if states[c.name] != "running"]
+        if getattr(args, "retry_failed", False):
+            todo = [c for c in todo if states[c.name] in ("failed", "done")]  # done ones are only counted as skipped
+        if skipped_running:
+            print(f"ablation: {len(skipped_running)} cell(s) left to their running cluster jobs (polargs ablate --status {out})",
+                  file=sys.stderr, flush=True)
+    where = f"GPUs {','.join(gpus)}, " if gpus and jobs > 1 else ""
+    print(f"ablation: {len(todo)} runs in {out} ({jobs} at a time, {where}{args.threads_per_run} thread(s) each)", file=sys.stderr, flush=True)
+    result = run_grid(todo, jobs=jobs, progress=not args.quiet, gpus=gpus if jobs > 1 else ())
+    return _finish(args, cells, command, result, start)
+
+
+def _finish(args: argparse.Namespace, cells: list, command: str, result, start: float, skipped_note: str = "") -> int:
+    """Gather, report, print the table and the counts; the exit status."""
+    from polargs_plugin.ablation.gather import find_runs, gather
+
+    out: Path = args.out
+    if not find_runs(out):
+        print(f"no finished run folders in {out} yet")
+        return _failures(result, cells)
     results = gather(out)
     print(results["markdown"])
     if not getattr(args, "no_report", False):
@@ -216,13 +310,79 @@ def execute(args: argparse.Namespace, cells: list, command: str) -> int:
         print(f"report: {write_report(out, results, command)}")
     print(f"results: {out / 'results.md'}, {out / 'results.csv'}, {out / 'results.json'}")
     print(f"{len(result.finished)} run(s) finished, {len(result.skipped)} skipped (already done), "
-          f"{len(result.failed)} failed; {time.perf_counter() - start:.0f} s")
+          f"{len(result.failed)} failed{skipped_note}; {time.perf_counter() - start:.0f} s")
+    return _failures(result, cells)
+
+
+def _failures(result, cells: list) -> int:
     if result.failed:
         print(f"error: {len(result.failed)} of {len(cells)} runs failed:", file=sys.stderr)
         for cell, log, message in result.failed:
             print(f"  {cell.name}: {message} (log: {log})", file=sys.stderr)
         return 1
     return 0
+
+
+def _submit(args: argparse.Namespace, cells: list, command: str, start: float) -> int:
+    """--executor submitit: one job array for the cells that need it; wait (local / debug) or return."""
+    from polargs_plugin.ablation.executors import SubmititOptions, require_submitit, submit_grid, wait_jobs
+    from polargs_plugin.ablation.grid import GridResult, write_grid_file
+
+    require_submitit()
+    out: Path = args.out
+    options = SubmititOptions(
+        cluster=args.submitit_cluster, partition=args.slurm_partition, gpus_per_task=args.gpus_per_task,
+        cpus_per_task=args.cpus_per_task, timeout_min=args.timeout_min, mem_gb=args.mem_gb,
+        array_parallelism=args.slurm_array_parallelism,
+        additional_parameters=_key_values(args.slurm_additional_parameters, "--slurm-additional-parameters"),
+        setup=list(args.slurm_setup),
+    )
+    write_grid_file(cells, out)
+    if args.submitit_cluster == "auto":
+        import shutil
+
+        if shutil.which("srun") is None:
+            print("ablation: no Slurm here (srun not found): submitit's local executor runs every cell at once "
+                  "as a process of this machine", file=sys.stderr, flush=True)
+    from polargs_plugin.ablation.grid import generate_scenes
+
+    generate_scenes(cells, progress=not args.quiet)  # once here, not in every job
+    submitted = submit_grid(cells, options, retry_failed=args.retry_failed)
+    skipped = submitted.skipped
+    counts = ", ".join(f"{len(names)} {state}" for state, names in sorted(skipped.items()))
+    if submitted.submitted:
+        kind = "job array" if submitted.cluster == "slurm" else f"submitit {submitted.cluster} jobs"
+        print(f"ablation: submitted {len(submitted.submitted)} cell(s) as {kind} {submitted.array_id or ''} "
+              f"({out / 'jobs.json'}); left alone: {counts or 'none'}", file=sys.stderr, flush=True)
+        first = submitted.submitted[0][1]
+        print(f"ablation: job logs in {first.paths.stdout.parent}/ (e.g. {first.paths.stdout.name})", file=sys.stderr, flush=True)
+    else:
+        hint = "" if args.retry_failed or "failed" not in skipped else " (--retry-failed resubmits the failed ones)"
+        print(f"ablation: nothing to submit: {counts}{hint}", file=sys.stderr, flush=True)
+    wait = args.wait if args.wait is not None else submitted.cluster != "slurm"
+    if not wait:
+        print(f"follow: polargs ablate --status {out}\nthen:   polargs ablate --out {out} --gather-only")
+        return 0
+    result = wait_jobs(submitted.submitted) if submitted.submitted else GridResult()
+    result.skipped = [c for c in cells if c.name in set(skipped.get("done", []))]
+    left = {state: len(skipped.get(state, [])) for state in ("running", "failed", "missing")}
+    note = "".join(f", {n} {state} (left alone)" for state, n in left.items() if n)
+    status = _finish(args, cells, command, result, start, note)
+    if status == 0 and left["failed"]:
+        print(f"error: {left['failed']} failed cell(s) left alone: polargs ablate --status {out}; "
+              "resubmit them with --retry-failed", file=sys.stderr)
+        return 1
+    return status
+
+
+def _key_values(items: list[str], option: str) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"{option}: expected KEY=VALUE, got {item!r}")
+        out[key.strip()] = value
+    return out
 
 
 def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
@@ -249,6 +409,21 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
 def run(args: argparse.Namespace) -> int:
     from polargs_plugin.ablation.variants import parse_variants
 
+    if args.status is not None:
+        from polargs_plugin.ablation.executors import ExecutorUnavailable, format_status, grid_status
+
+        if not args.status.is_dir():
+            print(f"error: {args.status}: not a folder", file=sys.stderr)
+            return 2
+        try:
+            print(format_status(grid_status(args.status)))
+        except ExecutorUnavailable as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        return 0
+    if args.out is None:
+        print("error: --out: required (or --status DIR)", file=sys.stderr)
+        return 2
     out: Path = args.out
     if out.exists() and not out.is_dir():
         print(f"error: {out}: exists and is not a folder", file=sys.stderr)
@@ -278,6 +453,14 @@ def run(args: argparse.Namespace) -> int:
         except ValueError:
             raise UsageError(f"--seeds: expected comma-separated integers, got {args.seeds!r}") from None
         cells = build_cells(args, _split(args.scenes, "--scenes"), variants, seeds)
+        _key_values(args.slurm_additional_parameters, "--slurm-additional-parameters")
+        if args.executor == "submitit":
+            from polargs_plugin.ablation.executors import ExecutorUnavailable, require_submitit
+
+            try:
+                require_submitit()
+            except ExecutorUnavailable as err:
+                raise UsageError(str(err)) from None
     except UsageError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
+import sys
+import tempfile
 import time
 from pathlib import Path
-
-import torch
 
 _EPILOG = """examples:
   polargs generate --scene glossy_plane_sphere --out scenes/sphere
@@ -16,7 +18,14 @@ _EPILOG = """examples:
 The folder holds four RGB angle images per view (0/45/90/135 deg), cameras.json (K and
 world_to_camera, OpenCV frame), masks, ground-truth normals/depth/diffuse/specular, highlight and
 overexposure masks, the ground-truth mesh (mesh.ply) and scene.json; see docs/dataset-format.md.
+
+An existing non-empty --out is refused (scenes are never mixed); --overwrite replaces a previous
+scene folder as a whole. The scene is written beside --out and moved into place when complete,
+so --out holds a whole scene or nothing.
 """
+
+#: Files that mark a folder as a scene folder `polargs generate` may replace with --overwrite.
+_SCENE_MARKERS = ("scene.json", "cameras.json")
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -50,7 +59,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--scene", required=True, choices=SCENE_NAMES, help="which procedural scene")
-    parser.add_argument("--out", required=True, type=Path, help="output folder (created)")
+    parser.add_argument("--out", required=True, type=Path, help="output folder (created; must be absent or empty)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing scene folder --out (as a whole)")
     parser.add_argument("--views", type=_positive, default=24, help="number of cameras (default 24)")
     parser.add_argument("--size", type=_size, default=(128, 128), metavar="WxH", help="image size (default 128x128)")
     parser.add_argument("--small", action="store_true", help="test-sized scene: 8 views of 48x48 (overrides --views/--size)")
@@ -62,8 +72,65 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _error(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return 2
+
+
+def _check_out(out: Path, overwrite: bool) -> str | None:
+    """The problem with writing a scene to ``out``, or None."""
+    if out.exists() and not out.is_dir():
+        return f"{out}: exists and is not a folder"
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            return f"{out}: exists and is not empty; choose another --out, or pass --overwrite to replace the scene in it"
+        if not any((out / name).is_file() for name in _SCENE_MARKERS):
+            return (f"{out}: --overwrite replaces scene folders only (with {' or '.join(_SCENE_MARKERS)}); "
+                    "this one is not: remove it yourself if it should go")
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     """Generate, write and summarise one scene."""
+    out: Path = args.out
+    problem = _check_out(out, args.overwrite)
+    if problem is not None:
+        return _error(problem)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.generating-", dir=out.parent))
+    except OSError as err:
+        return _error(f"{out}: cannot write there ({err.strerror or err})")
+    try:
+        status = _generate(args, staging)
+        if status == 0:
+            _swap_in(staging, out)
+        return status
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _swap_in(staging: Path, out: Path) -> None:
+    """Move the complete scene ``staging`` to ``out``, replacing what --overwrite allowed."""
+    os.chmod(staging, 0o777 & ~_umask())  # mkdtemp made it 0700
+    old = None
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+        os.replace(out, old / "scene")
+    os.replace(staging, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _umask() -> int:
+    from polargs_plugin.io import current_umask
+
+    return current_umask()
+
+
+def _generate(args: argparse.Namespace, folder: Path) -> int:
+    import torch
+
     from polargs_plugin.data.scene_format import write_scene
     from polargs_plugin.data.synthetic import SMALL_SETTINGS, generate_scene
     from polargs_plugin.optics.stokes import dolp_from_stokes
@@ -84,17 +151,17 @@ def run(args: argparse.Namespace) -> int:
         progress=True,
     )
     rendered = time.perf_counter() - start
-    write_scene(scene, args.out)
+    write_scene(scene, folder)
     pictures = 0
     if args.pictures:
         from polargs_plugin.viz import polar_panels, save_contact_sheet, save_polar_pictures
 
         for view in scene.views:
-            pictures += len(save_polar_pictures(view.stokes, args.out / "pictures", view.name))
+            pictures += len(save_polar_pictures(view.stokes, folder / "pictures", view.name))
         # One overview picture: a few views as rows, s0 / AoLP / DoLP / AoLP-with-DoLP as columns.
         step = max(1, len(scene.views) // 4)
         rows = [[polar_panels(v.stokes)[k] for k in ("s0", "aolp", "dolp", "aolp_dolp")] for v in scene.views[::step][:4]]
-        save_contact_sheet(rows, args.out / "pictures" / "overview.png")
+        save_contact_sheet(rows, folder / "pictures" / "overview.png")
         pictures += 1
     mask = torch.stack([v.mask for v in scene.views])
     dolp = torch.stack([dolp_from_stokes(v.stokes.mean(dim=1, keepdim=True)) for v in scene.views])

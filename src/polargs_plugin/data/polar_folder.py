@@ -10,7 +10,11 @@ Layout (``images/`` may be left out and its content put in the folder itself)::
 
 Angle images may be 8/16-bit PNG/TIFF (grey or RGB; an alpha channel is dropped) or float EXR.
 Raw mosaics are 2-D 8/16-bit images or ``.npy`` arrays, demosaiced by
-:func:`polargs_plugin.optics.mosaic.demosaic_polar` (``pattern`` "mono" or "rgb").
+:func:`polargs_plugin.optics.mosaic.demosaic_polar` (``pattern`` "mono" or "rgb", or "auto": told
+from the frames). The pattern is checked against every frame
+(:func:`polargs_plugin.optics.mosaic.check_mosaic_pattern`: inside the polarizer super-pixels a
+colour IMX250MYR frame has the 2x2 Bayer colour structure, a mono IMX250MZR frame has none), so a
+mono frame read as colour, or the reverse, is an error naming the frame.
 
 Conversions made by :func:`read_polar_folder`:
 
@@ -24,7 +28,9 @@ Conversions made by :func:`read_polar_folder`:
 - Image to camera matching: by file stem of the COLMAP image name; a trailing ``_0``, ``_45``,
   ``_90`` or ``_135`` is ignored, so a model built on the 0-degree images also fits.
 - Without a model and with ``sfm=True`` (the ``sfm`` extra, pycolmap), SfM runs on sRGB 8-bit
-  pictures of s0 / 2 and writes its model (text) to ``sparse/0``.
+  pictures of s0 / 2 and writes its model (text) to ``sparse/0``. It needs at least
+  :data:`SFM_MIN_VIEWS` overlapping views of the object; fewer, or fewer registered, is an error
+  that says how many were found and registered.
 """
 
 from __future__ import annotations
@@ -51,7 +57,15 @@ from polargs_plugin.data.imageio_utils import (
     write_png,
 )
 from polargs_plugin.io import PolarInputError, atomic_write
-from polargs_plugin.optics.mosaic import demosaic_polar, mosaic_from_intensities
+from polargs_plugin.optics.mosaic import (
+    MONO_BELOW,
+    RGB_ABOVE,
+    classify_mosaic,
+    demosaic_polar,
+    mosaic_colour_evidence,
+    mosaic_from_intensities,
+    pattern_mismatch,
+)
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, intensities_from_stokes, stokes_from_intensities
 from polargs_plugin.types import View
 
@@ -67,7 +81,11 @@ __all__ = [
 ]
 
 MOSAIC_PATTERNS = ("mono", "rgb")
-"""Raw mosaic layouts understood by ``demosaic_polar`` (Sony IMX250MZR / IMX250MYR)."""
+"""Raw mosaic layouts understood by ``demosaic_polar`` (Sony IMX250MZR / IMX250MYR); readers also
+take ``"auto"`` (told from the frames)."""
+
+SFM_MIN_VIEWS = 3
+"""Fewest overlapping views SfM can build a model from (two to initialise, one more to check it)."""
 
 _IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 _RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
@@ -242,9 +260,23 @@ def run_sfm(pictures: dict[str, np.ndarray], model_dir: str | os.PathLike) -> Pa
     Returns:
         ``model_dir``.
     """
-    import pycolmap  # optional dependency, only needed here
-
     model_dir = Path(model_dir)
+    advice = (
+        f"it needs at least {SFM_MIN_VIEWS} overlapping views of the object (textured surfaces, neighbouring "
+        "views sharing most of what they see); add views, or give a COLMAP model in sparse/0"
+    )
+    if len(pictures) < SFM_MIN_VIEWS:
+        raise PolarInputError(
+            model_dir.parent.parent if model_dir.name == "0" else model_dir,
+            f"SfM got {len(pictures)} image(s) ({', '.join(sorted(pictures)) or 'none'}); {advice}",
+        )
+    try:
+        import pycolmap  # optional dependency, only needed here
+    except ImportError:
+        raise PolarInputError(
+            model_dir, "SfM needs pycolmap (pip install 'polargs_plugin[sfm]'), or give a COLMAP model in sparse/0"
+        ) from None
+
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         for name, picture in pictures.items():
@@ -259,9 +291,10 @@ def run_sfm(pictures: dict[str, np.ndarray], model_dir: str | os.PathLike) -> Pa
         )
         pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
         reconstructions = pycolmap.incremental_mapping(database, tmp / "images", tmp / "sparse")
-        if not reconstructions:
-            raise PolarInputError(model_dir, f"SfM registered no images out of {len(pictures)}")
-        best = max(reconstructions.values(), key=lambda r: r.num_reg_images())
+        best = max(reconstructions.values(), key=lambda r: r.num_reg_images()) if reconstructions else None
+        registered = 0 if best is None else int(best.num_reg_images())
+        if registered < SFM_MIN_VIEWS:
+            raise PolarInputError(model_dir, f"SfM registered {registered} of {len(pictures)} images; {advice}")
         staging = tmp / "model"
         staging.mkdir()
         best.write_text(str(staging))
@@ -334,12 +367,50 @@ def _stokes_from_angles(paths: list[Path], bit_depth: int | None) -> torch.Tenso
     return stokes_from_intensities(torch.from_numpy(intensities))
 
 
-def _stokes_from_raw(path: Path, pattern: str, bit_depth: int | None) -> torch.Tensor:
+def _read_raw(path: Path) -> np.ndarray:
     raw = read_npy(path) if path.suffix.lower() == ".npy" else read_image(path)
     if not raw.max() > 0:
         raise PolarInputError(path, "all-dark raw mosaic")
+    return raw
+
+
+def _stokes_from_raw(raw: np.ndarray, path: Path, pattern: str, bit_depth: int | None) -> torch.Tensor:
     intensities = demosaic_polar(raw, pattern=pattern, bit_depth=bit_depth, source=str(path))
     return stokes_from_intensities(intensities)
+
+
+def _resolve_pattern(
+    raws: dict[str, np.ndarray], paths: dict[str, Path], pattern: str, bit_depth: int | None, check: bool
+) -> tuple[str, dict[str, float | None]]:
+    """The mosaic pattern of a folder's raw frames: ``pattern`` checked against each frame, or
+    told from them (``"auto"``). Returns (pattern, {name: colour evidence})."""
+    if pattern != "auto" and not check:
+        return pattern, {}
+    evidence = {name: mosaic_colour_evidence(raw, bit_depth, str(paths[name])) for name, raw in raws.items()}
+    if pattern != "auto":
+        for name, value in evidence.items():
+            problem = pattern_mismatch(value, pattern)
+            if problem is not None:
+                raise PolarInputError(paths[name], problem)
+        return pattern, evidence
+    found = {name: classify_mosaic(value) for name, value in evidence.items()}
+    mono = [name for name, kind in found.items() if kind == "mono"]
+    rgb = [name for name, kind in found.items() if kind == "rgb"]
+    if mono and rgb:
+        raise PolarInputError(
+            paths[rgb[0]],
+            f"looks like a colour (IMX250MYR) mosaic while {paths[mono[0]].name} looks mono (IMX250MZR) "
+            f"({len(rgb)} colour, {len(mono)} mono frames); one folder holds one sensor's frames: give the pattern (--pattern)",
+        )
+    if not (mono or rgb):
+        known = [v for v in evidence.values() if v is not None]
+        what = f"at most {100 * max(known):.0f} % of the bright blocks of a frame" if known else "no frame bright or large enough"
+        raise PolarInputError(
+            paths[next(iter(paths))].parent,
+            f"cannot tell mono (IMX250MZR) from colour (IMX250MYR) mosaics: Bayer colour structure in {what} "
+            f"(mono < {100 * MONO_BELOW:.0f} %, colour > {100 * RGB_ABOVE:.0f} %); give the pattern (--pattern mono or rgb)",
+        )
+    return ("mono" if mono else "rgb"), evidence
 
 
 def _camera_for(name: str, model: dict[str, ColmapCamera]) -> ColmapCamera | None:
@@ -358,15 +429,24 @@ def read_polar_folder(
     pattern: str | None = None,
     bit_depth: int | None = None,
     sfm: bool = False,
+    check_pattern: bool = True,
+    info: dict | None = None,
 ) -> list[View]:
     """Read four-angle images or raw mosaics plus a COLMAP model into views.
 
     Args:
         folder: the capture folder (layout in the module docstring).
-        pattern: mosaic layout for ``raw/`` ("mono" or "rgb"); required when reading mosaics.
+        pattern: mosaic layout for ``raw/``: "mono", "rgb" or "auto" (told from the frames; an
+            error when they cannot tell); required when reading mosaics.
         bit_depth: significant bits of integer images (e.g. 12 for 12-bit data in 16-bit files);
             None uses the full range of the file's dtype.
         sfm: when no COLMAP model exists, run pycolmap SfM and write ``sparse/0``.
+        check_pattern: check a given pattern against every raw frame (a mono frame read as "rgb"
+            is an error, and the reverse); off for colour frames of grey, white-balanced scenes,
+            which cannot be told from mono ones.
+        info: a dict to fill with what was found: ``pattern`` (the one used for raw/, or None),
+            ``colour_evidence`` ({view: fraction}, see ``mosaic_colour_evidence``), ``model``
+            (the COLMAP model folder) and ``sfm`` (True when SfM built it now).
 
     Returns:
         One :class:`View` per registered image (sorted by name); images that the model does
@@ -380,17 +460,30 @@ def read_polar_folder(
         raise PolarInputError(
             folder, "no polarization images: expected <name>_0/45/90/135 files, 0/ 45/ 90/ 135/ folders, or raw/ mosaics"
         )
-    if raw_files and pattern not in MOSAIC_PATTERNS:
-        raise PolarInputError(folder / "raw", f"unknown mosaic pattern {pattern!r}; pass pattern= one of {MOSAIC_PATTERNS}")
+    if raw_files and pattern not in (*MOSAIC_PATTERNS, "auto"):
+        raise PolarInputError(
+            folder / "raw", f"unknown mosaic pattern {pattern!r}; pass pattern= one of {(*MOSAIC_PATTERNS, 'auto')} (polargs: --pattern)"
+        )
+    info = {} if info is None else info
     stokes = {name: _stokes_from_angles(paths, bit_depth) for name, paths in angle_sets.items()}
-    stokes.update({name: _stokes_from_raw(path, pattern, bit_depth) for name, path in raw_files.items()})
+    used_pattern, evidence = None, {}
+    if raw_files:
+        raws = {name: _read_raw(path) for name, path in raw_files.items()}
+        used_pattern, evidence = _resolve_pattern(raws, raw_files, pattern, bit_depth, check_pattern)
+        for name in list(raws):
+            stokes[name] = _stokes_from_raw(raws.pop(name), raw_files[name], used_pattern, bit_depth)
+    info.update(pattern=used_pattern, colour_evidence=evidence, sfm=False)
 
     model_dir = find_colmap_model(folder)
     if model_dir is None:
         if not sfm:
-            raise PolarInputError(folder, "no COLMAP model (sparse/0/cameras.txt|.bin, images.txt|.bin); pass sfm=True to run SfM")
+            raise PolarInputError(
+                folder, "no COLMAP model (sparse/0/cameras.txt|.bin, images.txt|.bin); pass sfm=True (polargs: --sfm) to run SfM"
+            )
         pictures = {name: np.rint(linear_to_srgb(to_hwc(s[0] / 2)) * 255).astype(np.uint8) for name, s in stokes.items()}
         model_dir = run_sfm(pictures, folder / "sparse" / "0")
+        info["sfm"] = True
+    info["model"] = str(model_dir)
     model = read_colmap_model(model_dir)
 
     mask_paths = _files_by_stem(folder / "masks", (".png", ".tif", ".tiff"))

@@ -16,6 +16,7 @@ polar      <name>_0/45/90/135 images, 0/ 45/ 90/ 135/ or raw/    polar_folder.re
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +29,7 @@ from polargs_plugin.data.scene_format import read_scene_folder
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.types import View
 
-__all__ = ["FORMATS", "detect_format", "load_views"]
+__all__ = ["FORMATS", "detect_format", "load_views", "reader_options"]
 
 
 def _has_angle_images(folder: Path) -> bool:
@@ -78,6 +79,14 @@ def detect_format(path: str | os.PathLike) -> str:
     raise PolarInputError(folder, f"no known dataset format found. Looked for {looked_for}")
 
 
+def reader_options(fmt: str) -> tuple[str, ...]:
+    """Keyword options the reader of ``fmt`` takes (e.g. ``pattern``, ``bit_depth``, ``sfm`` for polar)."""
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown format {fmt!r}; choose one of {list(FORMATS)}")
+    parameters = list(inspect.signature(FORMATS[fmt][2]).parameters.values())[1:]
+    return tuple(p.name for p in parameters if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))
+
+
 def load_views(path: str | os.PathLike, fmt: str = "auto", **kwargs) -> list[View]:
     """Read any supported dataset folder into views in the project's conventions.
 
@@ -85,13 +94,22 @@ def load_views(path: str | os.PathLike, fmt: str = "auto", **kwargs) -> list[Vie
         path: dataset folder (one scene/object).
         fmt: "auto" (detect) or one of :data:`FORMATS`.
         **kwargs: passed to the reader (e.g. ``normalize`` for nersp/pandora, ``pattern``,
-            ``bit_depth``, ``sfm`` for polar).
+            ``bit_depth``, ``sfm``, ``check_pattern``, ``info`` for polar; :func:`reader_options`).
 
     Returns:
         list of :class:`~polargs_plugin.types.View`.
+
+    Raises:
+        PolarInputError: naming the folder: no known format, or an option its reader does not take.
     """
     if fmt == "auto":
         fmt = detect_format(path)
     if fmt not in FORMATS:
         raise ValueError(f"unknown format {fmt!r}; choose 'auto' or one of {list(FORMATS)}")
+    known = reader_options(fmt)
+    unknown = [name for name in kwargs if name not in known]
+    if unknown:
+        raise PolarInputError(
+            path, f"option(s) {', '.join(unknown)} do not apply to a {fmt} dataset (its reader takes: {', '.join(known) or 'none'})"
+        )
     return FORMATS[fmt][2](Path(path), **kwargs)
