@@ -79,15 +79,16 @@ def test_usage_errors_are_one_line(tmp_path, capsys):
 
 
 def test_pool_reports_failed_cells_with_logs(tmp_path):
-    """The process-pool path (spawned workers) with two cells that fail fast: both are reported
-    with their logs, nothing else is left behind."""
+    """The process-pool path (spawned workers, each given one "GPU" as on a multi-GPU machine)
+    with two cells that fail fast: both are reported with their logs, nothing else is left behind."""
     bad = SceneSpec("missing", str(tmp_path / "missing"))
     cells = expand([bad], ["base", "reg"], [0], tmp_path / "out")
-    result = run_grid(cells, jobs=2, progress=False)
+    result = run_grid(cells, jobs=2, progress=False, gpus=("5", "6"))
     assert not result.ok and {c.name for c, _, _ in result.failed} == {c.name for c in cells}
     for cell, log, message in result.failed:
         assert "dataset not found" in message and Path(log) == cell.log_path
-        assert "Traceback" in Path(log).read_text()
+        text = Path(log).read_text()
+        assert "Traceback" in text and re.search(r"CUDA_VISIBLE_DEVICES=[56]\)", text)
         assert not cell.run_dir.exists()
     assert not list((tmp_path / "out").glob(".tmp-*"))
     with pytest.raises(CellFailed, match="dataset not found"):

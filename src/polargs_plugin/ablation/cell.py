@@ -1,10 +1,18 @@
 """One grid cell of an ablation: a plain-data description and the one function that runs it.
 
-:func:`run_cell` is the only thing an executor calls (the local process pool today, a cluster
-job later, docs/ablation.md): it trains, meshes, evaluates and writes the run folder
+:func:`run_cell` is the only thing an executor calls (the local process pool, a submitit / Slurm
+job: docs/ablation.md, docs/cluster.md): it trains, meshes, evaluates and writes the run folder
 ``<out>/<name>/`` atomically (everything goes to ``<out>/.tmp-<name>-<pid>/``, renamed at the end),
 so a run folder is complete or absent. A failure leaves no run folder but
 ``<out>/logs/<name>.log`` (the run's output and the traceback) and raises :class:`CellFailed`.
+
+Resuming: training checkpoints periodically (``Cell.checkpoint_every``) into the stable folder
+``<out>/.partial/<name>/`` (``checkpoint.pt`` + ``state.json``: the curves so far, the cell's
+fingerprint). A run that is interrupted (killed, preempted, timed out, Ctrl-C) keeps that folder
+and the next attempt resumes from it; the reference trainer's checkpoints resume bit-exactly, so
+the run folder is the same as an uninterrupted run's (timings aside). A run that *fails* (an
+exception) discards it: after a fix the cell starts over. The folder is removed once the run
+folder is published.
 
 Run folder contents::
 
@@ -42,7 +50,8 @@ from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, gt_mesh_path
 from polargs_plugin.ablation.variants import DEFAULT_FACTOR, VARIANTS, describe, variant_configs
 from polargs_plugin.io import PolarInputError, atomic_write
 
-__all__ = ["Cell", "CellFailed", "run_cell", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done"]
+__all__ = ["Cell", "CellFailed", "run_cell", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done",
+           "partial_dir", "mark_interrupted", "PARTIAL_DIR"]
 
 RUN_FORMAT = "polargs-ablation-run-v1"
 SUMMARY_NAME = "summary.json"
@@ -50,6 +59,12 @@ CURVES_NAME = "curves.csv"
 INITS: tuple[str, ...] = ("hull", "sfm", "random")
 #: SfM initialisation falls back to the visual hull below this many points.
 MIN_SFM_POINTS = 100
+#: ``<out>/.partial/<name>/``: the periodic training checkpoint of a run in progress.
+PARTIAL_DIR = ".partial"
+PARTIAL_STATE = "state.json"
+PARTIAL_LOG = "attempts.log"
+#: periodic checkpoints per training when ``Cell.checkpoint_every`` is None.
+DEFAULT_CHECKPOINTS = 10
 
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
 
@@ -73,6 +88,9 @@ class Cell:
         eval: `polargs eval` settings (``num_samples``, ``cull``).
         threads: torch threads of the run.
         device: torch device (None: cuda if available, else cpu).
+        checkpoint_every: iterations between the periodic training checkpoints in
+            ``<out>/.partial/<name>/`` that an interrupted run resumes from (None: 10 per run;
+            0: none, an interrupted run starts over). Not part of the run's identity.
     """
 
     scene: SceneSpec
@@ -88,6 +106,7 @@ class Cell:
     eval: dict = field(default_factory=dict)
     threads: int = 1
     device: str | None = None
+    checkpoint_every: int | None = None
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -106,6 +125,18 @@ class Cell:
     @property
     def log_path(self) -> Path:
         return Path(self.out) / "logs" / f"{self.name}.log"
+
+    @property
+    def partial_dir(self) -> Path:
+        return partial_dir(self)
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What makes the run's figures: the description less the grid folder, the thread count and
+        the checkpoint cadence (a checkpoint is resumed only by a cell with the same fingerprint)."""
+        data = self.to_dict()
+        for key in ("out", "threads", "checkpoint_every"):
+            data.pop(key, None)
+        return data
 
     def configs(self):
         """``(TrainConfig, PolarConfig | None)`` of this cell (device and progress not yet set)."""
@@ -137,6 +168,28 @@ def is_done(cell: Cell) -> bool:
     return (cell.run_dir / SUMMARY_NAME).is_file()
 
 
+def partial_dir(cell: Cell) -> Path:
+    """``<out>/.partial/<name>/``: where a run in progress keeps its periodic checkpoint."""
+    return Path(cell.out) / PARTIAL_DIR / cell.name
+
+
+_INTERRUPTED = False
+
+
+def mark_interrupted() -> None:
+    """Called by a job's preemption / timeout handler (submitit's ``checkpoint``) before it exits:
+    the ``SystemExit`` that follows is an interruption (the partial checkpoint is kept and the
+    exception passes through unchanged), not a failure."""
+    global _INTERRUPTED
+    _INTERRUPTED = True
+
+
+def _is_interruption(err: BaseException) -> bool:
+    # after mark_interrupted, whatever ends the run comes from the scheduler's signal: the SystemExit
+    # of a requeue, or submitit's UncompletedJobError when the job has timed out too often
+    return isinstance(err, KeyboardInterrupt) or _INTERRUPTED
+
+
 def read_summary(run_dir: str | os.PathLike) -> dict[str, Any]:
     return json.loads((Path(run_dir) / SUMMARY_NAME).read_text())
 
@@ -149,7 +202,9 @@ def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
     Raises:
         CellFailed: after writing ``<out>/logs/<name>.log``; no run folder is left.
     """
+    partial = partial_dir(cell)
     if is_done(cell):
+        shutil.rmtree(partial, ignore_errors=True)  # left by a run interrupted right after publishing
         return read_summary(cell.run_dir)
     out = Path(cell.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -157,10 +212,14 @@ def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     log_file = open(tmp / "run.log", "w", buffering=1)
+    with contextlib.suppress(OSError):  # what the interrupted attempts printed
+        log_file.write((partial / PARTIAL_LOG).read_text())
     report = progress or (lambda phase, done, total: None)
     try:
         with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
             print(f"cell {cell.name}\n{json.dumps(cell.to_dict(), indent=2)}", flush=True)
+            print(f"started {_now()} on {platform.node()} (pid {os.getpid()}, "
+                  f"CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', 'unset')})", flush=True)
             summary = _run(cell, tmp, report)
         log_file.close()
         try:
@@ -170,11 +229,25 @@ def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
                 raise
             shutil.rmtree(tmp, ignore_errors=True)
             return read_summary(cell.run_dir)
+        shutil.rmtree(partial, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            partial.parent.rmdir()  # .partial/ once no run is in progress
         with contextlib.suppress(FileNotFoundError):
             cell.log_path.unlink()  # a failure log from an earlier attempt
         report("done", 1, 1)
         return summary
     except BaseException as err:
+        if _is_interruption(err):
+            # not a failure: keep the periodic checkpoint (and this attempt's output) for the next attempt
+            with contextlib.suppress(Exception):
+                log_file.write(f"\nINTERRUPTED ({type(err).__name__}) at {_now()}; the next attempt resumes "
+                               "from the last periodic checkpoint\n")
+            log_file.close()
+            with contextlib.suppress(OSError):
+                partial.mkdir(parents=True, exist_ok=True)
+                os.replace(tmp / "run.log", partial / PARTIAL_LOG)
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         message = _one_line(err)
         with contextlib.suppress(Exception):
             log_file.write("\n" + traceback.format_exc())
@@ -184,9 +257,12 @@ def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
         with contextlib.suppress(OSError):
             os.replace(tmp / "run.log", cell.log_path)
         shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(err, KeyboardInterrupt):
-            raise
+        shutil.rmtree(partial, ignore_errors=True)  # a failed run starts over (after a fix)
         raise CellFailed(cell.name, str(cell.log_path), message) from None
+
+
+def _now() -> str:
+    return datetime.datetime.now().astimezone().isoformat(timespec="seconds")
 
 
 def _one_line(err: BaseException) -> str:
@@ -236,19 +312,38 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     train_cfg, polar_cfg = cell.configs()
     device = cell.device or ("cuda" if torch.cuda.is_available() else "cpu")
     train_cfg.device, train_cfg.progress = device, False
-    hooks = None
-    if polar_cfg is not None:
+    if polar_cfg is not None and polar_cfg.cache_dir is None:
+        polar_cfg.cache_dir = str(Path(cell.out) / "cache" / "polar_maps")
+
+    def make_hooks():
+        if polar_cfg is None:
+            return None
         from polargs_plugin.hooks import PolarHooks
 
-        if polar_cfg.cache_dir is None:
-            polar_cfg.cache_dir = str(Path(cell.out) / "cache" / "polar_maps")
-        hooks = PolarHooks(polar_cfg)
+        return PolarHooks(polar_cfg)
+
     init_points, init_info = _initial_points(cell, views, train_cfg)
     clock.lap("init")
 
-    trainer = _make_trainer(views, train_cfg, hooks, init_points, report)
-    print(f"training {cell.variant} ({describe(cell.variant)}), {train_cfg.iterations} iterations on {device}", flush=True)
-    figures = trainer.train(checkpoint=tmp / CHECKPOINT_NAME)
+    trainer = _make_trainer(views, train_cfg, make_hooks(), init_points, report)
+    partial = partial_dir(cell)
+    try:
+        resumed = _resume(cell, trainer, partial)
+    except Exception as err:  # unreadable or inconsistent: start over with a fresh trainer
+        print(f"resume: cannot resume from {partial} ({type(err).__name__}: {err}); starting over", flush=True)
+        with contextlib.suppress(FileNotFoundError):
+            (partial / CHECKPOINT_NAME).unlink()
+        trainer, resumed = _make_trainer(views, train_cfg, make_hooks(), init_points, report), False
+    every = cell.checkpoint_every
+    if every is None:
+        every = max(1, math.ceil(train_cfg.iterations / DEFAULT_CHECKPOINTS))
+    trainer.partial = (partial, _plain(cell.fingerprint()))
+    print(f"training {cell.variant} ({describe(cell.variant)}), {train_cfg.iterations} iterations on {device}"
+          + (f", resumed at iteration {trainer.iteration}" if resumed else ""), flush=True)
+    figures = trainer.train(checkpoint=partial / CHECKPOINT_NAME, checkpoint_every=every)
+    shutil.copyfile(partial / CHECKPOINT_NAME, tmp / CHECKPOINT_NAME)
+    figures["seconds"] = trainer.train_seconds()
+    figures["loss"] = _final_loss(trainer.curve, train_cfg.log_every)  # the same whether resumed or not
     clock.lap("train")
     _write_curves(tmp / CURVES_NAME, trainer.curve)
     summary: dict[str, Any] = {
@@ -263,7 +358,13 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
         "factor": DEFAULT_FACTOR if cell.factor is None and cell.preset == "cpu" else cell.factor,
         "num_views": len(views),
         **init_info,
+        "device": device,
+        "device_name": torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else platform.processor() or None,
+        "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES"),
+        "job": _job_info(),
+        "resumed_from": trainer.resumes,
         "gt_mesh": str(gt_mesh),
+        "cell": cell.to_dict(),  # the plain description that reproduces the run (run_cell)
         "train_config": train_cfg.to_dict(),
         "polar_config": None if polar_cfg is None else polar_cfg.to_dict(),
     }
@@ -277,6 +378,7 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
         min_cluster=cell.mesh.get("min_cluster", 0.05), out=None,
     )
     mesh_cli.run(mesh_args)
+    canonical_mesh_order(tmp / mesh_cli.MESH_FILE)
     clock.lap("mesh")
     report("eval", 0, 1)
     has_normals = any(v.normal_gt is not None for v in views)
@@ -289,7 +391,7 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     metrics = json.loads((tmp / "metrics.json").read_text())
     clock.lap("eval")
     report("pictures", 0, 1)
-    _report_data(trainer, tmp, gt_mesh)
+    _report_data(trainer, tmp, gt_mesh, num_samples=min(400_000, eval_args.num_samples))
     clock.lap("pictures")
 
     chamfer = metrics.get("chamfer") or {}
@@ -330,7 +432,30 @@ def _make_trainer(views, config, hooks, init_points, report: Progress):
     from polargs_plugin.backends.reference.trainer import Trainer
 
     class RecordingTrainer(Trainer):
+        """Records the curves; ``save_checkpoint`` also writes ``state.json`` beside the checkpoint
+        (curves, fingerprint, training seconds so far) when ``partial`` is set."""
+
         curve: list[dict[str, float]]
+        partial: tuple[Path, dict] | None = None
+        seconds_before: float = 0.0
+        resumes: list[int]
+        _started: float | None = None
+
+        def train(self, *args, **kwargs):
+            self._started = time.perf_counter()
+            return super().train(*args, **kwargs)
+
+        def train_seconds(self) -> float:
+            return self.seconds_before + (0.0 if self._started is None else time.perf_counter() - self._started)
+
+        def save_checkpoint(self, path):
+            if self.partial is not None:
+                folder, fingerprint = self.partial
+                # state first: a kill between the two leaves a state one checkpoint ahead, cut back on load
+                _write_json(folder / PARTIAL_STATE, {"fingerprint": fingerprint, "iteration": self.iteration,
+                                                     "curve": self.curve, "train_seconds": self.train_seconds(),
+                                                     "resumed_from": self.resumes})
+            return super().save_checkpoint(path)
 
         def step(self) -> dict[str, float]:
             logs = super().step()
@@ -348,7 +473,97 @@ def _make_trainer(views, config, hooks, init_points, report: Progress):
 
     trainer = RecordingTrainer(views, config, hooks=hooks, init_points=init_points)
     trainer.curve = []
+    trainer.resumes = []
     return trainer
+
+
+def _plain(data: Any) -> Any:
+    """``data`` as it reads back from JSON."""
+    return json.loads(json.dumps(_json_safe(data)))
+
+
+def _resume(cell: Cell, trainer, partial: Path) -> bool:
+    """Load ``partial``'s checkpoint into ``trainer`` when it is this cell's (else remove it and
+    return False). Raises when the checkpoint is this cell's but cannot be loaded."""
+    from polargs_plugin.cli.train import CHECKPOINT_NAME
+
+    checkpoint, state_path = partial / CHECKPOINT_NAME, partial / PARTIAL_STATE
+    if not checkpoint.is_file():
+        return False
+    try:
+        state = json.loads(state_path.read_text())
+    except (OSError, ValueError):
+        state = {}
+    if state.get("fingerprint") != _plain(cell.fingerprint()):
+        print(f"resume: {partial} holds no checkpoint of this configuration; starting over", flush=True)
+        checkpoint.unlink()
+        return False
+    trainer.load_checkpoint(checkpoint)
+    curve = [row for row in state["curve"] if row["iteration"] <= trainer.iteration]
+    if [row["iteration"] for row in curve] != list(range(1, trainer.iteration + 1)):
+        raise ValueError(f"curves ({len(curve)} rows) do not match the checkpoint (iteration {trainer.iteration})")
+    trainer.curve = curve
+    trainer.seconds_before = float(state.get("train_seconds") or 0.0)
+    trainer.resumes = [int(i) for i in state.get("resumed_from") or []] + [trainer.iteration]
+    print(f"resume: loaded {checkpoint} at iteration {trainer.iteration}", flush=True)
+    return True
+
+
+def canonical_mesh_order(path: Path) -> None:
+    """Rewrite a mesh with its vertices sorted by position and its triangles sorted (orientation kept).
+
+    open3d's TSDF hash map lists the same surface in a different order from one run to the next,
+    and the evaluation's area-uniform sampling (fixed seed) then draws other points: the Chamfer
+    figures of two identical trainings would differ in the third digit. In a canonical order the
+    same model gives the same figures, which is what a resumed run is checked against.
+    """
+    import numpy as np
+    import open3d as o3d
+
+    from polargs_plugin.mesh import read_mesh, write_mesh
+
+    mesh = read_mesh(path)
+    vertices = np.asarray(mesh.vertices)
+    triangles = np.asarray(mesh.triangles)
+    if len(vertices) == 0:
+        return
+    order = np.lexsort(vertices.T[::-1])  # x, then y, then z
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    tri = rank[triangles]
+    shift = np.argmin(tri, axis=1)  # rotate each triangle to start at its smallest index (same orientation)
+    tri = np.take_along_axis(tri, (shift[:, None] + np.arange(3)) % 3, axis=1)
+    tri = tri[np.lexsort(tri.T[::-1])]
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices[order]), o3d.utility.Vector3iVector(tri))
+    if mesh.has_vertex_normals():
+        out.compute_vertex_normals()  # summed over triangles: recomputed in the canonical order
+    if mesh.has_vertex_colors():
+        out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
+    write_mesh(path, out)
+
+
+def _final_loss(curve: list[dict[str, float]], log_every: int) -> float | None:
+    """The trainer's final ``loss`` figure (mean over the iterations since the last multiple of
+    ``log_every``), from the curves: identical for a resumed and an uninterrupted run."""
+    if not curve:
+        return None
+    end = int(curve[-1]["iteration"])
+    start = ((end - 1) // max(1, log_every)) * max(1, log_every)
+    values = [row["loss"] for row in curve if row["iteration"] > start]
+    return float(sum(values) / len(values)) if values else None
+
+
+def _job_info() -> dict[str, Any] | None:
+    """The cluster job this run ran in (Slurm / submitit), for the summary."""
+    env = os.environ
+    if "SLURM_JOB_ID" in env:
+        job = env.get("SLURM_ARRAY_JOB_ID")
+        return {"scheduler": "slurm", "job_id": f"{job}_{env.get('SLURM_ARRAY_TASK_ID')}" if job else env["SLURM_JOB_ID"],
+                "node": env.get("SLURMD_NODENAME")}
+    for key, name in (("SUBMITIT_LOCAL_JOB_ID", "submitit-local"), ("SUBMITIT_DEBUG_JOB_ID", "submitit-debug")):
+        if key in env:
+            return {"scheduler": name, "job_id": env[key], "node": platform.node()}
+    return None
 
 
 def _initial_points(cell: Cell, views, config):
@@ -422,8 +637,9 @@ def report_view_indices(num_views: int) -> list[int]:
     return sorted({0, num_views // 2})[:REPORT_VIEW_COUNT]
 
 
-def _report_data(trainer, tmp: Path, gt_mesh: Path) -> None:
-    """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report."""
+def _report_data(trainer, tmp: Path, gt_mesh: Path, num_samples: int = 400_000) -> None:
+    """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report (the mesh error
+    against ``num_samples`` GT samples: at most 400k, fewer when the evaluation samples fewer)."""
     import numpy as np
     import torch
 
@@ -468,7 +684,7 @@ def _report_data(trainer, tmp: Path, gt_mesh: Path) -> None:
 
     pred = read_mesh(tmp / "tsdf_mesh.ply")
     vertices = np.asarray(pred.vertices, dtype=np.float64)
-    distance = signed_distance(vertices, read_mesh(gt_mesh))
+    distance = signed_distance(vertices, read_mesh(gt_mesh), num_samples=num_samples)
     with atomic_path(tmp / "mesh_error.npz") as path:
         np.savez_compressed(path, vertices=vertices.astype(np.float32), signed_distance=distance.astype(np.float32))
 

@@ -1,4 +1,6 @@
-"""Expand scenes x variants x seeds (x inits) into cells and run them on a local process pool.
+"""Expand scenes x variants x seeds (x inits) into cells and run them on a local process pool
+(one run per GPU on a multi-GPU machine: each worker sees one GPU through CUDA_VISIBLE_DEVICES).
+A cluster runs the same cells through :mod:`polargs_plugin.ablation.executors`.
 
 Resumable: a cell whose run folder exists is skipped (run folders are complete or absent).
 The grid goes on after a failed cell; :class:`GridResult` lists the failures with their logs.
@@ -38,8 +40,11 @@ def expand(scenes: Sequence[SceneSpec], variants: Sequence[str], seeds: Sequence
             for scene in scenes for seed in seeds for init in inits for variant in variants]
 
 
-def default_jobs(threads_per_run: int = 1) -> int:
-    """Cores available to this process // threads per run (at least 1)."""
+def default_jobs(threads_per_run: int = 1, gpus: Sequence[str] = ()) -> int:
+    """One run per GPU when ``gpus`` are given, else cores available to this process // threads
+    per run (at least 1)."""
+    if gpus:
+        return len(gpus)
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
@@ -153,12 +158,16 @@ def _finished_line(cell: Cell, summary: dict) -> str:
 _QUEUE: Any = None
 
 
-def _init_worker(queue: Any, threads: int) -> None:
-    """Pool initializer: thread counts before torch / numba are imported, the progress queue."""
+def _init_worker(queue: Any, threads: int, gpu_queue: Any = None) -> None:
+    """Pool initializer: thread counts before torch / numba are imported, the progress queue, and
+    this worker's GPU (``CUDA_VISIBLE_DEVICES``, read by CUDA at its first use in the worker)."""
     global _QUEUE
     _QUEUE = queue
     for key in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[key] = str(max(1, threads))
+    if gpu_queue is not None:
+        with contextlib.suppress(Exception):
+            os.environ["CUDA_VISIBLE_DEVICES"] = str(gpu_queue.get(timeout=30))
 
 
 def _worker(cell_data: dict) -> dict:
@@ -181,7 +190,7 @@ def _write_crash_log(cell: Cell, message: str) -> str:
 
 # ---------------------------------------------------------------------------------------- grid
 def run_grid(cells: Sequence[Cell], jobs: int = 1, progress: bool = True, stream: TextIO | None = None,
-             prepare_scenes: bool = True) -> GridResult:
+             prepare_scenes: bool = True, gpus: Sequence[str] = ()) -> GridResult:
     """Run the cells not yet done, ``jobs`` at a time; never stops at a failure.
 
     Args:
@@ -192,6 +201,9 @@ def run_grid(cells: Sequence[Cell], jobs: int = 1, progress: bool = True, stream
         stream: where progress goes (default: stderr).
         prepare_scenes: generate the bundled scenes first (once each; a failure here is left to
             the cells, which then fail with a log).
+        gpus: GPU ids (as in ``CUDA_VISIBLE_DEVICES``) handed to the pool's workers in turn, one
+            each (``jobs`` > ``len(gpus)`` puts several runs on a GPU); with ``jobs`` 1 the run
+            uses this process's devices.
     """
     stream = stream or sys.stderr
     result = GridResult()
@@ -206,12 +218,7 @@ def run_grid(cells: Sequence[Cell], jobs: int = 1, progress: bool = True, stream
     if not pending:
         return result
     if prepare_scenes:
-        for scene in {c.scene for c in pending if c.scene.bundled}:
-            if not Path(scene.path).is_dir():
-                print(f"generating {scene.bundled} ({scene.views} views, {scene.width}x{scene.height}) -> {scene.path}",
-                      file=stream, flush=True)
-                with contextlib.suppress(Exception):
-                    ensure_scene(scene, progress=progress)
+        generate_scenes(pending, stream, progress)
     bar = _Progress(pending, progress, stream)
     try:
         if jobs <= 1:
@@ -225,16 +232,34 @@ def run_grid(cells: Sequence[Cell], jobs: int = 1, progress: bool = True, stream
                     result.finished.append((cell, summary))
                     bar.finish(cell.name, True, _finished_line(cell, summary))
         else:
-            _run_pool(pending, jobs, bar, result)
+            _run_pool(pending, jobs, bar, result, gpus)
     finally:
         bar.close()
     return result
 
 
-def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridResult) -> None:
+def generate_scenes(cells: Sequence[Cell], stream: TextIO | None = None, progress: bool = False) -> None:
+    """Generate the cells' bundled scenes that are not there yet (once each; a failure is left to
+    the cells, which then fail with a log)."""
+    stream = stream or sys.stderr
+    for scene in {c.scene for c in cells if c.scene.bundled}:
+        if not Path(scene.path).is_dir():
+            print(f"generating {scene.bundled} ({scene.views} views, {scene.width}x{scene.height}) -> {scene.path}",
+                  file=stream, flush=True)
+            with contextlib.suppress(Exception):
+                ensure_scene(scene, progress=progress)
+
+
+def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridResult, gpus: Sequence[str] = ()) -> None:
     context = multiprocessing.get_context("spawn")
     queue = context.Queue()
     threads = max(c.threads for c in pending)
+    workers = min(jobs, len(pending))
+    gpu_queue = None
+    if gpus:
+        gpu_queue = context.Queue()
+        for i in range(workers):
+            gpu_queue.put(str(gpus[i % len(gpus)]))
 
     def pump() -> None:
         while True:
@@ -247,8 +272,8 @@ def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridRe
     reader = threading.Thread(target=pump, daemon=True)
     reader.start()
     try:
-        with cf.ProcessPoolExecutor(max_workers=min(jobs, len(pending)), mp_context=context,
-                                    initializer=_init_worker, initargs=(queue, threads)) as pool:
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                                    initializer=_init_worker, initargs=(queue, threads, gpu_queue)) as pool:
             futures = {pool.submit(_worker, cell.to_dict()): cell for cell in pending}
             for future in cf.as_completed(futures):
                 cell = futures[future]
