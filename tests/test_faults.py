@@ -175,3 +175,35 @@ def test_densify_checks_the_render_and_render_fn_shapes():
     with pytest.raises(ValueError, match=r"hooks.densify: render_fn\(view 'v\d'\).depth has shape \(\d+, \d+\), "
                                          r"expected \(1, \d+, \d+\) like view 'v\d'"):
         hooks.densify(it, views[0], wrong_sources, None)
+
+
+def test_training_stops_at_the_first_non_finite_parameter_naming_iteration_and_tensor() -> None:
+    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer, TrainingDiverged
+    from polargs_plugin.data.synthetic import generate_scene
+
+    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    trainer = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=200))
+    trainer.step()
+    with torch.no_grad():
+        trainer.model.log_scales[3, 1] = float("nan")
+    with pytest.raises(TrainingDiverged, match=r"iteration 2: .*(loss is nan|non-finite parameters: .*'log_scales' has)"):
+        trainer.step()
+
+
+def test_trainer_refuses_nan_views_and_nan_checkpoints(tmp_path) -> None:
+    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+    from polargs_plugin.data.synthetic import generate_scene
+
+    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    bad = views[1].stokes.clone()
+    bad[0, 0, 5, 5] = float("nan")
+    with pytest.raises(ValueError, match=r"view 'view_001': stokes has 1 non-finite value\(s\)"):
+        Trainer([views[0], dataclasses.replace(views[1], stokes=bad)], TrainConfig.cpu(progress=False))
+    trainer = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=200))
+    trainer.step()
+    with torch.no_grad():
+        trainer.model.means[0, 0] = float("nan")
+    trainer.save_checkpoint(tmp_path / "nan.pt")
+    fresh = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=200))
+    with pytest.raises(ValueError, match=r"nan.pt: checkpoint: non-finite parameters: 'means' has 1 of 600"):
+        fresh.load_checkpoint(tmp_path / "nan.pt")

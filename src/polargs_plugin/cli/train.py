@@ -543,6 +543,8 @@ def _fail(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from polargs_plugin.backends.reference.trainer import TrainingDiverged
+
     schedule, preset = args.schedule, args.preset
     if preset in SCHEDULES:  # the old meaning of --preset
         if schedule is not None and schedule != preset:
@@ -648,6 +650,8 @@ def run(args: argparse.Namespace) -> int:
         stage = "after training"
     except KeyboardInterrupt:
         return _interrupted(args, stop, trainer, checkpoint, stage, out, created)
+    except TrainingDiverged as err:  # the last periodic checkpoint (if any) predates the bad values
+        return _fail(f"{args.out}: training stopped: {err}")
     except PolarInputError as err:
         if stage == "before training started" and created:
             _remove_if_empty(out, lock)

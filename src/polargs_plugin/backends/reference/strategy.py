@@ -46,7 +46,10 @@ class DensityConfig:
     refine_every: int = 100
     reset_every: int = 3000
     opacity_reset: bool = True
-    max_gaussians: int | None = None  # no growth beyond this count (None: unlimited, as vanilla)
+    # no clone / split beyond this count (None: unlimited, as vanilla). It bounds vanilla density
+    # control only: Gaussians appended by the PolarGS densify hook are not capped (capping them
+    # at a full model would switch Dense off), so a Full run can exceed it by Dense's appends.
+    max_gaussians: int | None = None
 
     def scaled(self, factor: float) -> "DensityConfig":
         """A copy with start, stop, interval and reset interval multiplied by ``factor``."""

@@ -38,6 +38,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from polargs_plugin.backends.reference.model import (
+    PARAM_NAMES,
     GaussianModel,
     LearningRates,
     init_points_from_masks,
@@ -49,9 +50,15 @@ from polargs_plugin.losses import photometric_loss
 from polargs_plugin.threads import ThreadPolicy
 from polargs_plugin.types import RenderOut, TrainingHooks, View
 
-__all__ = ["TrainConfig", "Trainer", "TrainingHooks", "StepLogs", "CHECKPOINT_FORMAT"]
+__all__ = ["TrainConfig", "Trainer", "TrainingHooks", "TrainingDiverged", "StepLogs", "CHECKPOINT_FORMAT"]
 
 CHECKPOINT_FORMAT = "polargs-reference-checkpoint-v1"
+
+
+class TrainingDiverged(RuntimeError):
+    """Training produced a non-finite loss or parameter; the message names the iteration and the tensor.
+
+    Raised before the bad values could reach a checkpoint (the last one written stays valid)."""
 
 
 @dataclass
@@ -97,7 +104,8 @@ class TrainConfig:
     def cpu(cls, factor: float = 0.02, **overrides: Any) -> "TrainConfig":
         """Every schedule multiplied by ``factor`` (default: 600 iterations, refinement every 2
         from 10 to 300) for a CPU run of minutes at 128x128: SH degree 1, 2000 initial points,
-        at most 6000 Gaussians and no opacity reset (see :class:`DensityConfig`)."""
+        at most 6000 Gaussians from vanilla density control (Dense's appends come on top, see
+        :class:`DensityConfig`) and no opacity reset."""
         cfg = cls(
             iterations=round(30_000 * factor),
             schedule_scale=factor,
@@ -155,6 +163,8 @@ class Trainer:
         self.threads = cfg.threads.apply()  # process-wide thread counts / layer (polargs_plugin.threads)
         _seed_everything(cfg.seed)
         self.device = torch.device(cfg.device)
+        for view in views:
+            _check_finite_view(view)
         self.views = [v.to(self.device) for v in views]
         _check_ssim_weight(cfg, hooks)
         self.hooks = hooks
@@ -241,10 +251,13 @@ class Trainer:
             loss = loss + extra
             # detached, so that the logs do not keep the step's autograd graph alive
             values.update({k: v.detach() if isinstance(v, Tensor) else v for k, v in (hook_logs or {}).items()})
+        if not bool(torch.isfinite(loss)):  # one scalar: the only host sync a step needs
+            raise TrainingDiverged(f"iteration {it}: the loss is {float(loss)} (view '{view.name}'); nothing was updated")
         loss.backward()
         self.density.update(render, view.width, view.height, it)
         model.optimizer.step()
         model.optimizer.zero_grad(set_to_none=True)
+        _check_finite_parameters(model, f"iteration {it}: after the optimizer step")
 
         with torch.no_grad():
             refined = self.density.step(model, it)
@@ -366,7 +379,12 @@ class Trainer:
                 path, "checkpoint was trained " + ("without" if data["hooks"] is None else "with") + " hooks"
             )
         self._prepare()
-        self.model = GaussianModel.from_checkpoint(data["model"], lrs=self.model.lrs, device=self.device)
+        model = GaussianModel.from_checkpoint(data["model"], lrs=self.model.lrs, device=self.device)
+        try:
+            _check_finite_parameters(model, "checkpoint")
+        except TrainingDiverged as err:
+            raise PolarInputError(path, str(err)) from None
+        self.model = model
         self.density.load_state_dict(data["density"])
         if self.hooks is not None:
             self.hooks.load_state_dict(data["hooks"])
@@ -427,6 +445,21 @@ class StepLogs(Mapping):
 
     def __repr__(self) -> str:
         return f"StepLogs({dict(self)})"
+
+
+def _check_finite_view(view: View) -> None:
+    """Refuse a view whose Stokes or camera hold NaN / inf (it would train to NaN silently)."""
+    for name in ("stokes", "K", "world_to_camera"):
+        bad = int((~torch.isfinite(getattr(view, name))).sum())
+        if bad:
+            raise PolarInputError(view.source or view.name, f"view '{view.name}': {name} has {bad} non-finite value(s)")
+
+
+def _check_finite_parameters(model: GaussianModel, where: str) -> None:
+    bad = {name: int((~torch.isfinite(getattr(model, name))).sum()) for name in PARAM_NAMES}
+    named = [f"'{name}' has {count} of {getattr(model, name).numel()}" for name, count in bad.items() if count]
+    if named:
+        raise TrainingDiverged(f"{where}: non-finite parameters: {', '.join(named)}")
 
 
 def _check_ssim_weight(config: TrainConfig, hooks: TrainingHooks | None) -> None:
