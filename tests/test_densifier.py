@@ -120,9 +120,9 @@ from polargs_plugin.data.synthetic import generate_scene
 # 6 neighbouring views of an 18-view orbit (every view has sources within the triangulation limits)
 views = generate_scene("glossy_plane_sphere", num_views=18, width=32, height=32).views[:6]
 cfg = PolarConfig.cpu_demo()
-cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 20, 150, 10
+cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 20, 200, 10
 cfg.densify.patchmatch.iterations = 2
-train = TrainConfig.cpu(iterations=150, progress=False, num_init_points=300, init_resolution=32,
+train = TrainConfig.cpu(iterations=200, progress=False, num_init_points=300, init_resolution=32,
                         density=DensityConfig(max_gaussians=1500, opacity_reset=False))
 trainer = Trainer(views, train, hooks=PolarHooks(cfg))
 trainer.train()

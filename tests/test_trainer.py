@@ -309,3 +309,13 @@ def test_lazy_step_logs_equal_the_figures_computed_every_step(views):
     assert figures["loss"] == pytest.approx(sum(losses[8:]) / 2, rel=1e-6)
     with pytest.raises(ValueError, match="log_every"):
         Trainer(views, _config(log_every=0))
+
+
+def test_progress_bar_ends_on_the_summary_psnr(views, capsys):
+    """The bar's last PSNR is the one train() returns (all views), not the last view's."""
+    import re
+
+    trainer = Trainer(views, _config(iterations=6, progress=True))
+    figures = trainer.train()
+    shown = re.findall(r"psnr=([0-9.]+)", capsys.readouterr().err)
+    assert shown and float(shown[-1]) == pytest.approx(figures["psnr"], abs=0.006)

@@ -308,16 +308,20 @@ class Trainer:
                     mean_loss = float(torch.stack(window).mean())
                     psnr = logs["psnr"]
                     window.clear()
-                    bar.set_postfix(loss=f"{mean_loss:.4f}", psnr=f"{psnr:.2f}", n=self.model.num)
+                    bar.set_postfix(loss=f"{mean_loss:.4f}", psnr_view=f"{psnr:.2f}", n=self.model.num)
                 if checkpoint is not None and checkpoint_every > 0 and self.iteration % checkpoint_every == 0:
                     self.save_checkpoint(checkpoint)
-        seconds = time.perf_counter() - start_time
+            seconds = time.perf_counter() - start_time
+            # the bar ends on the figure the summary reports: PSNR over all views, not the last view's
+            final_psnr = self.evaluate()
+            bar.set_postfix(loss=f"{mean_loss:.4f}" if mean_loss is not None else "-", psnr=f"{final_psnr:.2f}",
+                            n=self.model.num)
         if checkpoint is not None:
             self.save_checkpoint(checkpoint)
         return {
             "iterations": self.iteration,
             "num_gaussians": self.model.num,
-            "psnr": self.evaluate(),
+            "psnr": final_psnr,
             "loss": mean_loss,
             "seconds": seconds,
             "extent": self.extent,
