@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from polargs_plugin.ablation.variants import DESCRIPTIONS, PRESETS, VARIANTS
+from polargs_plugin.cli.argtypes import image_size, non_negative_int, positive_float, positive_int
 
 CLUSTERS = ("auto", "slurm", "local", "debug")
 
@@ -50,77 +51,45 @@ Examples:
 """
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like WIDTHxHEIGHT (e.g. 128x128), got {text!r}") from None
-    if width < 8 or height < 8:
-        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
-    return width, height
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
 
 
-def _non_negative(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return value
 
 
 def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "0.02: 600 iterations") -> None:
     """Options shared by ``polargs ablate`` and ``polargs demo``."""
-    p.add_argument("--jobs", type=_positive, default=None, metavar="N",
+    p.add_argument("--jobs", type=positive_int, default=None, metavar="N",
                    help="runs in parallel (default: one per GPU when CUDA is available, see --gpus; else cores // --threads-per-run); "
                    "1 runs in this process")
-    p.add_argument("--threads-per-run", type=_positive, default=1, metavar="T", help="torch threads of each run (default 1)")
+    p.add_argument("--threads-per-run", type=positive_int, default=1, metavar="T", help="torch threads of each run (default 1)")
     p.add_argument("--preset", choices=PRESETS, default="cpu",
                    help="cpu: every schedule x --factor (TrainConfig.cpu, PolarConfig.cpu_demo); paper: vanilla 3DGS "
                    "schedule with the paper's synthetic settings, for a GPU (default cpu)")
-    p.add_argument("--factor", type=_positive_float, default=None, metavar="F", help=f"schedule factor of the cpu preset (default {default_factor_help})")
-    p.add_argument("--iters", type=_positive, default=None, metavar="N", help="training iterations (default: the preset's)")
+    p.add_argument("--factor", type=positive_float, default=None, metavar="F", help=f"schedule factor of the cpu preset (default {default_factor_help})")
+    p.add_argument("--iters", type=positive_int, default=None, metavar="N", help="training iterations (default: the preset's)")
     p.add_argument("--init", default="hull", metavar="INIT",
                    help="initial points: hull (visual hull of the masks), sfm (triangulated SIFT matches with the known poses; "
                    "falls back to hull when too few, recorded), random (uniform in the look-at cube); comma-separated to run several (default hull)")
-    p.add_argument("--views", type=_positive, default=24, metavar="N", help="views of a generated bundled scene (default 24)")
-    p.add_argument("--size", type=_size, default=(128, 128), metavar="WxH", help="image size of a generated bundled scene (default 128x128)")
+    p.add_argument("--views", type=positive_int, default=24, metavar="N", help="views of a generated bundled scene (default 24)")
+    p.add_argument("--size", type=image_size, default=(128, 128), metavar="WxH", help="image size of a generated bundled scene (default 128x128)")
     p.add_argument("--scene-cache", type=Path, default=None, metavar="DIR", help="where bundled scenes are generated and reused (default OUT/scenes)")
     p.add_argument("--train-set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a TrainConfig field, dotted for nested ones (e.g. density.max_gaussians=3000); repeatable")
     p.add_argument("--polar-set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a PolarConfig field of the variants with hooks (e.g. losses.alpha_normal=0.1); repeatable")
     p.add_argument("--mesh-preset", choices=("synthetic", "paper"), default="synthetic", help="TSDF settings (polargs mesh --preset; default synthetic)")
-    p.add_argument("--voxel", type=_positive_float, default=None,
+    p.add_argument("--voxel", type=positive_float, default=None,
                    help="TSDF voxel (default: the preset's; for bundled scenes scaled to the image size, 1 / min(W, H))")
-    p.add_argument("--eval-samples", type=_positive, default=1_000_000, metavar="N", help="points sampled per mesh for Chamfer (default 1e6)")
+    p.add_argument("--eval-samples", type=positive_int, default=1_000_000, metavar="N", help="points sampled per mesh for Chamfer (default 1e6)")
     p.add_argument("--no-cull", action="store_true", help="do not cull predicted points to the view masks before Chamfer")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     p.add_argument("--gpus", default=None, metavar="IDS",
                    help="local executor: GPUs to spread the runs over, one run per GPU at a time (comma-separated ids, "
                    "or none; default: every visible GPU when CUDA is available)")
-    p.add_argument("--checkpoint-every", type=_non_negative, default=None, metavar="N",
+    p.add_argument("--checkpoint-every", type=non_negative_int, default=None, metavar="N",
                    help="iterations between the training checkpoints an interrupted run resumes from "
                    "(default: 10 per run; 0: none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one line per finished run is still printed)")
@@ -153,12 +122,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="submitit's executor: slurm, local (a process per cell on this machine), debug (in this process, "
                    "one after the other) or auto (slurm when srun is found, else local; default)")
     g.add_argument("--slurm-partition", default=None, metavar="NAME", help="Slurm partition")
-    g.add_argument("--gpus-per-task", type=_non_negative, default=None, metavar="N", help="GPUs per cell (default 1 on Slurm, 0 otherwise)")
-    g.add_argument("--cpus-per-task", type=_positive, default=None, metavar="N", help="CPUs per cell (default: --threads-per-run)")
-    g.add_argument("--timeout-min", type=_positive, default=240, metavar="MIN",
+    g.add_argument("--gpus-per-task", type=non_negative_int, default=None, metavar="N", help="GPUs per cell (default 1 on Slurm, 0 otherwise)")
+    g.add_argument("--cpus-per-task", type=positive_int, default=None, metavar="N", help="CPUs per cell (default: --threads-per-run)")
+    g.add_argument("--timeout-min", type=positive_int, default=240, metavar="MIN",
                    help="time limit of a job; a job that reaches it is checkpointed and requeued, up to 3 times (default 240)")
-    g.add_argument("--mem-gb", type=_positive_float, default=None, metavar="GB", help="memory per job (default: the partition's)")
-    g.add_argument("--slurm-array-parallelism", type=_positive, default=None, metavar="N", help="at most N cells running at once")
+    g.add_argument("--mem-gb", type=positive_float, default=None, metavar="GB", help="memory per job (default: the partition's)")
+    g.add_argument("--slurm-array-parallelism", type=positive_int, default=None, metavar="N", help="at most N cells running at once")
     g.add_argument("--slurm-additional-parameters", nargs="+", action="extend", default=[], metavar="KEY=VALUE",
                    help="more sbatch options, e.g. account=proj qos=high constraint=a100 (repeatable)")
     g.add_argument("--slurm-setup", action="append", default=[], metavar="CMD",
@@ -208,7 +177,7 @@ def _split(text: str, what: str) -> list[str]:
 def build_cells(args: argparse.Namespace, scene_texts: list[str], variants: list[str], seeds: list[int]):
     """The grid's cells from the parsed options (raises UsageError for bad values)."""
     from polargs_plugin.ablation.grid import expand
-    from polargs_plugin.ablation.scenes import bundled_names, parse_scene
+    from polargs_plugin.ablation.scenes import parse_scene
 
     out: Path = args.out
     cache = args.scene_cache or out / "scenes"

@@ -9,6 +9,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from polargs_plugin.cli.argtypes import image_size, positive_int
 
 _EPILOG = """examples:
   polargs generate --scene glossy_plane_sphere --out scenes/sphere
@@ -28,21 +29,8 @@ so --out holds a whole scene or nothing.
 _SCENE_MARKERS = ("scene.json", "cameras.json")
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like WIDTHxHEIGHT (e.g. 128x128), got {text!r}") from None
-    if width < 8 or height < 8:
-        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {text!r}")
-    return width, height
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -61,8 +49,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--scene", required=True, choices=SCENE_NAMES, help="which procedural scene")
     parser.add_argument("--out", required=True, type=Path, help="output folder (created; must be absent or empty)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing scene folder --out (as a whole)")
-    parser.add_argument("--views", type=_positive, default=24, help="number of cameras (default 24)")
-    parser.add_argument("--size", type=_size, default=(128, 128), metavar="WxH", help="image size (default 128x128)")
+    parser.add_argument("--views", type=positive_int, default=24, help="number of cameras (default 24)")
+    parser.add_argument("--size", type=image_size, default=(128, 128), metavar="WxH", help="image size (default 128x128)")
     parser.add_argument("--small", action="store_true", help="test-sized scene: 8 views of 48x48 (overrides --views/--size)")
     parser.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default 0)")
     parser.add_argument("--noise", type=float, default=0.005, help="Gaussian noise std per angle image (default 0.005)")

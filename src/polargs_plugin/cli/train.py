@@ -15,7 +15,6 @@ import contextlib
 import hashlib
 import json
 import math
-import os
 import shlex
 import signal
 import sys
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from polargs_plugin.io import FolderLock, PolarInputError, atomic_write, check_writable
+from polargs_plugin.cli.argtypes import non_negative_int, positive_float, positive_int
 
 CHECKPOINT_NAME = "checkpoint.pt"
 SUMMARY_NAME = "summary.json"
@@ -86,38 +86,14 @@ Examples:
 
 
 # ------------------------------------------------------------------------------ options
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return value
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return value
 
 
 def _bit_depth(text: str) -> int:
-    value = _positive_int(text)
+    value = positive_int(text)
     if not 1 <= value <= 16:
         raise argparse.ArgumentTypeError(f"must be between 1 and 16, got {text}")
     return value
@@ -159,9 +135,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=PRESETS + SCHEDULES, default=None, metavar="{synthetic,real}",
                    help="PolarGS values of the paper for synthetic data or real captures (default synthetic); "
                    "the old --preset cpu|paper still selects the schedule, with a note")
-    p.add_argument("--factor", type=_positive_float, default=None, metavar="F",
+    p.add_argument("--factor", type=positive_float, default=None, metavar="F",
                    help="schedule factor of --schedule cpu (default 0.02: 600 iterations)")
-    p.add_argument("--iters", type=_positive_int, default=None, metavar="N", help="number of iterations (default: the schedule's)")
+    p.add_argument("--iters", type=positive_int, default=None, metavar="N", help="number of iterations (default: the schedule's)")
     p.add_argument(
         "--polar",
         action=argparse.BooleanOptionalAction,
@@ -186,8 +162,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue from RUN_DIR/checkpoint.pt (same data: checked)")
     p.add_argument("--device", default=None, help="torch device, e.g. cpu or cuda (default: cuda if available)")
     p.add_argument(
-        "--checkpoint-every", type=_non_negative_int, default=None, metavar="N",
-        help=f"save the checkpoint every N iterations (default: every 10 %% of the run; 0: only at the end)",
+        "--checkpoint-every", type=non_negative_int, default=None, metavar="N",
+        help="save the checkpoint every N iterations (default: every 10 %% of the run; 0: only at the end)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_reader_options(p)

@@ -46,6 +46,9 @@ __all__ = [
 
 RAW_NAMES = ("means", "sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")
 
+Optimizers = torch.optim.Optimizer | Mapping[str, torch.optim.Optimizer]
+"""One optimizer whose param groups carry ``"name"``, or one optimizer per parameter name."""
+
 def logit(p: Tensor, eps: float = 1e-6) -> Tensor:
     """Inverse sigmoid, with ``p`` clamped to [eps, 1 - eps] so the result is finite."""
     p = p.clamp(eps, 1 - eps)
