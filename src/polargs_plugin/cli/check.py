@@ -36,6 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("dataset", metavar="DATASET", help="dataset folder (any supported format) or synthetic:NAME")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report as JSON")
     parser.add_argument("--views", action="store_true", help="print one line per view")
+    from polargs_plugin.cli.train import add_reader_options
+
+    add_reader_options(parser)
     parser.set_defaults(func=run)
 
 
@@ -48,14 +51,14 @@ def _line(stats) -> str:
 def run(args: argparse.Namespace) -> int:
     """Load the dataset, run :func:`~polargs_plugin.data.checks.check_views`, print the verdict."""
     from polargs_plugin.cli.mesh import fail
-    from polargs_plugin.cli.train import load_dataset
+    from polargs_plugin.cli.train import load_dataset, reader_kwargs
     from polargs_plugin.data.checks import check_views
     from polargs_plugin.io import PolarInputError, atomic_write
 
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            views = load_dataset(args.dataset)
+            views = load_dataset(args.dataset, args.format, None, **reader_kwargs(args))
         for warning in caught:
             if issubclass(warning.category, UserWarning) and "TBB" not in str(warning.message):
                 print(f"warning: {warning.message}")

@@ -59,8 +59,9 @@ def load_run(run_dir: Path) -> tuple[Any, list]:
         if not path.is_file():
             raise PolarInputError(path, "missing; is this a finished `polargs train` run folder?")
     try:
-        dataset = json.loads(summary_path.read_text())["dataset"]
-    except (ValueError, KeyError, TypeError) as err:
+        summary = json.loads(summary_path.read_text())
+        dataset, reader = summary["dataset"], summary.get("reader") or {}
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
         raise PolarInputError(summary_path, f"no dataset entry ({type(err).__name__}: {err})") from err
     try:
         data = torch.load(checkpoint_path, map_location="cpu", weights_only=True)
@@ -68,7 +69,7 @@ def load_run(run_dir: Path) -> tuple[Any, list]:
         raise PolarInputError(checkpoint_path, f"cannot read checkpoint ({type(err).__name__}: {err})") from err
     if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
         raise PolarInputError(checkpoint_path, f"not a {CHECKPOINT_FORMAT} file")
-    views = load_dataset(dataset)
+    views = load_dataset(dataset, **reader)  # the reader options the run was trained with
     if [v.name for v in views] != data["view_names"]:
         raise PolarInputError(checkpoint_path, f"was trained on other views than those of {dataset}")
     return GaussianModel.from_checkpoint(data["model"]), views
