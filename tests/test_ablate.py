@@ -185,3 +185,59 @@ def test_sfm_init_falls_back_to_the_hull_and_says_so(tmp_path):
     init_points, info = _initial_points(cell, views, cell.configs()[0])
     assert init_points is None and info["init"] == "sfm" and info["init_used"] == "hull"
     assert "fell back to the visual hull" in info["init_note"]
+
+
+# ------------------------------------------------------------------------ reader options
+def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, capsys):
+    """--format / --pattern / --bit-depth / --no-pattern-check of `polargs ablate` become the cell's
+    ``reader`` (plain data, JSON round trip), reach load_dataset, and are recorded in summary.json
+    under "reader" as `polargs train` records them (what `polargs mesh` / `eval` re-read with)."""
+    import polargs_plugin.cli.mesh as mesh_cli
+    import polargs_plugin.cli.train as train_cli
+    from polargs_plugin.data.synthetic import generate_scene
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "gt_mesh.ply").write_text("stands in for the GT mesh")
+    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    calls, summaries = [], []
+
+    def fake_load(spec, fmt="auto", info=None, **options):
+        calls.append((spec, fmt, options))
+        if info is not None:
+            info.update(format=fmt, pattern="mono")  # what a polar folder's reader reports
+        return views
+
+    def stop_at_mesh(args):  # the preliminary summary is what `polargs mesh` reads
+        summaries.append(json.loads((Path(args.run_dir) / "summary.json").read_text()))
+        raise RuntimeError("stopped before meshing")
+
+    monkeypatch.setattr(train_cli, "load_dataset", fake_load)
+    monkeypatch.setattr(mesh_cli, "run", stop_at_mesh)
+    out = tmp_path / "out"
+    reader_flags = ["--format", "polar", "--pattern", "mono", "--bit-depth", "12", "--no-pattern-check"]
+    status = main(["ablate", "--scenes", f"mine={data}", "--variants", "base", "--out", str(out), "--jobs", "1", "--quiet",
+                   "--iters", "1", "--train-set", "num_init_points=100", *reader_flags])
+    assert status == 1 and "stopped before meshing" in capsys.readouterr().err
+    expected = {"fmt": "polar", "pattern": "mono", "bit_depth": 12, "check_pattern": False}
+    grid = json.loads((out / "grid.json").read_text())
+    cells = [Cell.from_dict(c) for c in (grid["cells"] if isinstance(grid, dict) else grid)]
+    assert [c.reader for c in cells] == [expected]
+    assert Cell.from_dict(json.loads(json.dumps(cells[0].to_dict()))) == cells[0]
+    assert cells[0].fingerprint()["reader"] == expected
+    assert calls == [(str(data.resolve()), "polar", {"pattern": "mono", "bit_depth": 12, "check_pattern": False})]
+    (summary,) = summaries
+    assert summary["reader"] == expected and summary["dataset"] == str(data.resolve())
+    assert summary["cell"]["reader"] == expected and summary["dataset_format"] == "polar"
+    # a cell without reader options keeps the fingerprint of before (its partial checkpoints resume)
+    assert "reader" not in Cell(scene=cells[0].scene, variant="base", seed=0, out=str(out)).fingerprint()
+
+
+def test_reader_options_on_bundled_scenes_name_the_option(tmp_path, capsys):
+    assert main(["ablate", "--scenes", SCENE, "--pattern", "mono", "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --pattern apply to dataset folders") and SCENE in err and "\n" not in err
+    assert main(["demo", "--bit-depth", "12", "--sfm", "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --bit-depth, --sfm apply to dataset folders") and "\n" not in err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -145,3 +145,28 @@ def test_errors_are_one_line_without_traceback_in_a_real_process(tmp_path):
     assert result.returncode == 2
     _one_error_line(result.stderr, f"error: {settings}: unknown key 'trian'")
     assert not (tmp_path / "run").exists()
+
+
+def test_mesh_rereads_the_views_with_the_runs_reader_options(tmp_path, monkeypatch):
+    """`polargs mesh` on a run folder reads the dataset with summary.json's "reader" entry (as
+    `polargs train` and `polargs ablate` record it), here pattern="mono"."""
+    import polargs_plugin.cli.train as train_cli
+    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+
+    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    trainer = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=100, iterations=1))
+    trainer.step()
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    trainer.save_checkpoint(run_dir / train_cli.CHECKPOINT_NAME)
+    dataset = tmp_path / "polar"  # never read: the loader is replaced
+    (run_dir / train_cli.SUMMARY_NAME).write_text(json.dumps({"dataset": str(dataset), "reader": {"pattern": "mono"}}))
+    calls = []
+
+    def fake_load(spec, fmt="auto", info=None, **options):
+        calls.append((spec, fmt, options))
+        return views
+
+    monkeypatch.setattr(train_cli, "load_dataset", fake_load)
+    assert main(["mesh", str(run_dir), "--out", str(tmp_path / "mesh.ply")]) == 0
+    assert calls == [(str(dataset), "auto", {"pattern": "mono"})]

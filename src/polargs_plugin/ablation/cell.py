@@ -91,6 +91,11 @@ class Cell:
         checkpoint_every: iterations between the periodic training checkpoints in
             ``<out>/.partial/<name>/`` that an interrupted run resumes from (None: 10 per run;
             0: none, an interrupted run starts over). Not part of the run's identity.
+        reader: options of the dataset reader for a dataset-folder scene, as ``polargs train``
+            takes them (``fmt``, ``pattern``, ``bit_depth``, ``sfm``, ``check_pattern``; the
+            keyword arguments of :func:`polargs_plugin.cli.train.load_dataset`). Empty for a
+            bundled scene. The run's ``summary.json`` records under ``reader`` the options that
+            read the same views again (what `polargs mesh` / `polargs eval` use).
     """
 
     scene: SceneSpec
@@ -107,6 +112,7 @@ class Cell:
     threads: int = 1
     device: str | None = None
     checkpoint_every: int | None = None
+    reader: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -136,6 +142,8 @@ class Cell:
         data = self.to_dict()
         for key in ("out", "threads", "checkpoint_every"):
             data.pop(key, None)
+        if not data.get("reader"):
+            data.pop("reader", None)  # the fingerprint of cells from before reader options (their checkpoints resume)
         return data
 
     def configs(self):
@@ -294,7 +302,7 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
 
     from polargs_plugin.cli import eval as eval_cli
     from polargs_plugin.cli import mesh as mesh_cli
-    from polargs_plugin.cli.train import CHECKPOINT_NAME, load_dataset
+    from polargs_plugin.cli.train import CHECKPOINT_NAME, load_dataset, reader_record
 
     started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
     if cell.threads > 0:
@@ -306,7 +314,14 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
         raise PolarInputError(folder, "dataset not found")
     gt_mesh = gt_mesh_path(cell.scene)
     clock.lap("scene")
-    views = load_dataset(str(folder))
+    read_info: dict[str, Any] = {}
+    views = load_dataset(str(folder), info=read_info, **cell.reader)
+    reader = reader_record(argparse.Namespace(format=cell.reader.get("fmt", "auto"), bit_depth=cell.reader.get("bit_depth"),
+                                              no_pattern_check=cell.reader.get("check_pattern") is False), read_info)
+    if read_info.get("pattern"):
+        print(f"raw mosaics: {read_info['pattern']}", flush=True)
+    if read_info.get("sfm"):
+        print(f"SfM: model written to {read_info.get('model')}", flush=True)
     clock.lap("load")
 
     train_cfg, polar_cfg = cell.configs()
@@ -350,6 +365,8 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
         "format": RUN_FORMAT,
         "name": cell.name,
         "dataset": str(folder),  # what `polargs mesh` / `polargs eval` read
+        "dataset_format": read_info.get("format"),
+        "reader": reader,  # ... and how: load_dataset(dataset, **reader), as for `polargs train`
         "scene": cell.scene.to_dict(),
         "variant": cell.variant,
         "variant_description": describe(cell.variant),

@@ -239,8 +239,9 @@ def run_grid(cells: Sequence[Cell], jobs: int = 1, progress: bool = True, stream
 
 
 def generate_scenes(cells: Sequence[Cell], stream: TextIO | None = None, progress: bool = False) -> None:
-    """Generate the cells' bundled scenes that are not there yet (once each; a failure is left to
-    the cells, which then fail with a log)."""
+    """Generate the cells' bundled scenes that are not there yet, and run SfM once for the dataset
+    folders read with ``sfm`` (reader option ``--sfm``) that have no COLMAP model yet, so parallel
+    cells do not each run it (once each; a failure is left to the cells, which then fail with a log)."""
     stream = stream or sys.stderr
     for scene in {c.scene for c in cells if c.scene.bundled}:
         if not Path(scene.path).is_dir():
@@ -248,6 +249,14 @@ def generate_scenes(cells: Sequence[Cell], stream: TextIO | None = None, progres
                   file=stream, flush=True)
             with contextlib.suppress(Exception):
                 ensure_scene(scene, progress=progress)
+    sfm = {c.scene.path: c.reader for c in cells if c.scene.bundled is None and c.reader.get("sfm")}
+    for path, reader in sfm.items():
+        if Path(path).is_dir() and not (Path(path) / "sparse" / "0").is_dir():
+            from polargs_plugin.cli.train import load_dataset
+
+            print(f"SfM: {path} has no COLMAP model; running SfM once for its cells", file=stream, flush=True)
+            with contextlib.suppress(Exception):
+                load_dataset(path, **reader)
 
 
 def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridResult, gpus: Sequence[str] = ()) -> None:

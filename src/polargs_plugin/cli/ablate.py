@@ -93,6 +93,9 @@ def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "0.02
                    help="iterations between the training checkpoints an interrupted run resumes from "
                    "(default: 10 per run; 0: none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one line per finished run is still printed)")
+    from polargs_plugin.cli.train import add_reader_options
+
+    add_reader_options(p)  # --format, --pattern, --no-pattern-check, --bit-depth, --sfm (dataset-folder scenes only)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -174,6 +177,22 @@ def _split(text: str, what: str) -> list[str]:
     return items
 
 
+_READER_FLAGS = {"pattern": "--pattern", "bit_depth": "--bit-depth", "sfm": "--sfm", "check_pattern": "--no-pattern-check"}
+
+
+def cell_reader(args: argparse.Namespace) -> dict[str, Any]:
+    """The reader options of the command line as ``Cell.reader`` (load_dataset's keyword arguments;
+    only those given)."""
+    from polargs_plugin.cli.train import reader_kwargs
+
+    reader: dict[str, Any] = {}
+    fmt = getattr(args, "format", "auto") or "auto"
+    if fmt != "auto":
+        reader["fmt"] = fmt
+    reader.update(reader_kwargs(args))
+    return reader
+
+
 def build_cells(args: argparse.Namespace, scene_texts: list[str], variants: list[str], seeds: list[int]):
     """The grid's cells from the parsed options (raises UsageError for bad values)."""
     from polargs_plugin.ablation.grid import expand
@@ -194,6 +213,12 @@ def build_cells(args: argparse.Namespace, scene_texts: list[str], variants: list
     for scene in scenes:
         if scene.bundled is None and not Path(scene.path).exists():
             print(f"warning: {scene.path}: dataset not found; the runs of scene '{scene.name}' will fail", file=sys.stderr)
+    reader = cell_reader(args)
+    flags = [_READER_FLAGS[k] for k in reader if k in _READER_FLAGS]
+    bundled = [s.name for s in scenes if s.bundled is not None]
+    if flags and bundled:  # as `polargs train` does for synthetic:NAME (--format is ignored there, as in train)
+        raise UsageError(f"{', '.join(flags)} apply to dataset folders, not to a bundled scene ({', '.join(bundled)}); "
+                         "run bundled scenes and dataset folders as separate commands (the same --out is fine)")
     inits = _split(args.init, "--init")
     bad = [i for i in inits if i not in _INITS]
     if bad:
@@ -213,7 +238,8 @@ def build_cells(args: argparse.Namespace, scene_texts: list[str], variants: list
                         train_overrides=train_overrides, polar_overrides=polar_overrides, mesh=mesh,
                         eval={"num_samples": args.eval_samples, "cull": not args.no_cull},
                         threads=args.threads_per_run, device=args.device,
-                        checkpoint_every=getattr(args, "checkpoint_every", None))
+                        checkpoint_every=getattr(args, "checkpoint_every", None),
+                        reader={} if scene.bundled is not None else dict(reader))
     for variant in dict.fromkeys(variants):  # overrides are checked before anything runs
         probe = next(c for c in cells if c.variant == variant)
         try:
@@ -372,6 +398,17 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
         parts += ["--polar-set", item]
     if args.no_cull:
         parts.append("--no-cull")
+    reader = cell_reader(args)
+    if "fmt" in reader:
+        parts += ["--format", reader["fmt"]]
+    if "pattern" in reader:
+        parts += ["--pattern", reader["pattern"]]
+    if "bit_depth" in reader:
+        parts += ["--bit-depth", str(reader["bit_depth"])]
+    if reader.get("sfm"):
+        parts.append("--sfm")
+    if reader.get("check_pattern") is False:
+        parts.append("--no-pattern-check")
     return shlex.join(parts)
 
 

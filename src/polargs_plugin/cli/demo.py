@@ -14,6 +14,9 @@ TSDF meshes, evaluate them against the ground truth (Chamfer, normal MAE), and w
 with pictures. Prints the table and the report's path. Running it again reuses finished runs.
 
 It is `polargs ablate` with two variants and one seed (docs/ablation.md); the same options apply.
+The reader options (--pattern, --bit-depth, --sfm, --no-pattern-check) are for dataset folders
+(polargs ablate, polargs train): with a bundled scene they are an error, as for `polargs train
+synthetic:NAME`; --format is ignored.
 
 Examples:
   polargs demo                                    # out/demo/report.md
