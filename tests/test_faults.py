@@ -197,7 +197,7 @@ def test_trainer_refuses_nan_views_and_nan_checkpoints(tmp_path) -> None:
     views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
     bad = views[1].stokes.clone()
     bad[0, 0, 5, 5] = float("nan")
-    with pytest.raises(ValueError, match=r"view 'view_001': stokes has 1 non-finite value\(s\)"):
+    with pytest.raises(ValueError, match=r"Trainer: view 'view_001' .*stokes has 1 non-finite value\(s\)"):
         Trainer([views[0], dataclasses.replace(views[1], stokes=bad)], TrainConfig.cpu(progress=False))
     trainer = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=200))
     trainer.step()
@@ -207,3 +207,19 @@ def test_trainer_refuses_nan_views_and_nan_checkpoints(tmp_path) -> None:
     fresh = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=200))
     with pytest.raises(ValueError, match=r"nan.pt: checkpoint: non-finite parameters: 'means' has 1 of 600"):
         fresh.load_checkpoint(tmp_path / "nan.pt")
+
+
+def test_load_views_refuses_a_nan_pixel_naming_the_file(tmp_path, monkeypatch) -> None:
+    """A reader's NaN (e.g. an EXR Stokes pixel) is caught at the door, not in training."""
+    from polargs_plugin.data import registry
+    from polargs_plugin.data.synthetic import generate_scene
+
+    view = generate_scene("bumpy_mixed", num_views=1, width=16, height=16).views[0]
+    stokes = view.stokes.clone()
+    stokes[1, 0, 3, 4] = float("nan")
+    bad = dataclasses.replace(view, stokes=stokes, source=str(tmp_path / "s1_000.exr"))
+    reader = registry.FORMATS["polargs"]
+    monkeypatch.setitem(registry.FORMATS, "polargs", (reader[0], reader[1], lambda folder, **kw: [bad]))
+    with pytest.raises(PolarInputError, match=r"s1_000.exr: load_views: view 'view_000' .*stokes has 1 non-finite "
+                                              r"value\(s\) \(NaN or inf\), the first at index \[1, 0, 3, 4\]"):
+        registry.load_views(tmp_path, fmt="polargs")

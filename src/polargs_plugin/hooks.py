@@ -44,7 +44,7 @@ from polargs_plugin.config import PolarConfig
 from polargs_plugin.correction import compute_polar_maps, input_range, physical_stokes
 from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, scale_loss
-from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
+from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View, describe_view, validate_view
 
 __all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]
 
@@ -108,45 +108,6 @@ def _cache_entry_problem(data: dict[str, Tensor], view: View) -> str | None:
     return None
 
 
-def _where(view: View) -> str:
-    """How messages name a view: its name and, when known, where it came from."""
-    return f"view '{view.name}'" + (f" ({view.source})" if view.source else "")
-
-
-def _first_bad(tensor: Tensor) -> str:
-    """Index of the first non-finite element, e.g. ``[0, 2, 5, 7]``."""
-    index = (~torch.isfinite(tensor)).nonzero()[0].tolist()
-    return "[" + ", ".join(str(i) for i in index) + "]"
-
-
-def _check_view(view: View) -> None:
-    """Refuse a view the hooks cannot use: wrong shapes or non-finite values (names the view)."""
-    where = _where(view)
-    problems = []
-    stokes = view.stokes
-    if not isinstance(stokes, Tensor) or stokes.ndim != 4 or stokes.shape[0] != 3 or stokes.shape[1] not in (1, 3):
-        shape = tuple(stokes.shape) if isinstance(stokes, Tensor) else type(stokes).__name__
-        raise PolarInputError(view.source or view.name, f"hooks.preprocess: {where}: stokes has shape {shape}, "
-                              "expected (3, C, H, W) with C = 1 or 3")
-    height, width = stokes.shape[-2:]
-    expected = {"K": (3, 3), "world_to_camera": (4, 4), "mask": (1, height, width),
-                "normal_gt": (3, height, width), "depth_gt": (1, height, width)}
-    for name, shape in expected.items():
-        value = getattr(view, name)
-        if value is None:
-            continue
-        if tuple(value.shape) != shape:
-            problems.append(f"{name} has shape {tuple(value.shape)}, expected {shape}")
-    for name in ("stokes", "K", "world_to_camera"):
-        value = getattr(view, name)
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            count = int((~torch.isfinite(value)).sum())
-            problems.append(f"{name} has {count} non-finite value(s) (NaN or inf), the first at index "
-                            f"{_first_bad(value)}")
-    if problems:
-        raise PolarInputError(view.source or view.name, f"hooks.preprocess: {where}: " + "; ".join(problems))
-
-
 def _check_shape(where: str, argument: str, tensor: Any, expected: tuple[int, ...], view: View) -> None:
     """Raise ValueError naming ``argument`` when ``tensor`` does not have shape ``expected``."""
     if not isinstance(tensor, Tensor):
@@ -201,7 +162,7 @@ class PolarHooks:
         if len(set(names)) != len(names):
             raise ValueError("view names must be unique: the maps are looked up by name")
         for view in views:
-            _check_view(view)
+            validate_view(view, "hooks.preprocess")
             self._check_physics(view)
         self._shapes = {view.name: (view.height, view.width) for view in views}
         self._reflective.clear()
@@ -222,7 +183,7 @@ class PolarHooks:
         """Warn once per view whose s0 / 2 leaves [0, 1]; report impossible Stokes (one warning
         per view with the counts) and refuse a view beyond ``max_impossible_fraction``."""
         cfg = self.config.correction
-        where = _where(view)
+        where = describe_view(view)
         low, high = input_range(view.stokes)
         key = ("range", view.name, view.source)
         if (low < -1e-6 or high > 1 + 1e-6) and key not in self._warned:
@@ -265,7 +226,7 @@ class PolarHooks:
                 problem = _cache_entry_problem(data, view)
                 if problem is None:
                     return maps
-                warnings.warn(f"{path}: cache entry of {_where(view)} not used ({problem}); recomputed",
+                warnings.warn(f"{path}: cache entry of {describe_view(view)} not used ({problem}); recomputed",
                               stacklevel=3)
             except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError):
                 pass  # unreadable cache entry: recompute and overwrite it

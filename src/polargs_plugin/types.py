@@ -21,7 +21,12 @@ from typing import Any, Callable, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-__all__ = ["View", "PolarMaps", "RenderOut", "GaussianState", "NewGaussians", "TrainingHooks", "RenderFn"]
+from polargs_plugin.io import PolarInputError
+
+__all__ = [
+    "View", "PolarMaps", "RenderOut", "GaussianState", "NewGaussians", "TrainingHooks", "RenderFn",
+    "describe_view", "validate_view",
+]
 
 
 @dataclass
@@ -84,6 +89,51 @@ class View:
             if isinstance(getattr(self, f.name), Tensor)
         }
         return replace(self, **moved)
+
+
+def describe_view(view: View) -> str:
+    """How messages name a view: its name and, when known, where it came from."""
+    return f"view '{view.name}'" + (f" ({view.source})" if view.source else "")
+
+
+def _first_bad(tensor: Tensor) -> str:
+    """Index of the first non-finite element, e.g. ``[0, 2, 5, 7]``."""
+    index = (~torch.isfinite(tensor)).nonzero()[0].tolist()
+    return "[" + ", ".join(str(i) for i in index) + "]"
+
+
+def validate_view(view: View, where: str) -> None:
+    """Refuse a view with wrong shapes or non-finite Stokes / camera values (one implementation for
+    the readers' door, the hooks and the trainer).
+
+    Args:
+        view: the view.
+        where: who checks, for the message (e.g. ``"hooks.preprocess"``).
+
+    Raises:
+        PolarInputError: naming the view's source (or name), the field and the problem.
+    """
+    described = describe_view(view)
+    stokes = view.stokes
+    if not isinstance(stokes, Tensor) or stokes.ndim != 4 or stokes.shape[0] != 3 or stokes.shape[1] not in (1, 3):
+        shape = tuple(stokes.shape) if isinstance(stokes, Tensor) else type(stokes).__name__
+        raise PolarInputError(view.source or view.name, f"{where}: {described}: stokes has shape {shape}, "
+                              "expected (3, C, H, W) with C = 1 or 3")
+    height, width = stokes.shape[-2:]
+    expected = {"K": (3, 3), "world_to_camera": (4, 4), "mask": (1, height, width),
+                "normal_gt": (3, height, width), "depth_gt": (1, height, width)}
+    problems = [
+        f"{name} has shape {tuple(getattr(view, name).shape)}, expected {shape}"
+        for name, shape in expected.items()
+        if getattr(view, name) is not None and tuple(getattr(view, name).shape) != shape
+    ]
+    for name in ("stokes", "K", "world_to_camera"):
+        value = getattr(view, name)
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            count = int((~torch.isfinite(value)).sum())
+            problems.append(f"{name} has {count} non-finite value(s) (NaN or inf), the first at index {_first_bad(value)}")
+    if problems:
+        raise PolarInputError(view.source or view.name, f"{where}: {described}: " + "; ".join(problems))
 
 
 @dataclass

@@ -27,7 +27,7 @@ from polargs_plugin.data.pandora import read_pandora
 from polargs_plugin.data.polar_folder import read_polar_folder
 from polargs_plugin.data.scene_format import read_scene_folder
 from polargs_plugin.io import PolarInputError
-from polargs_plugin.types import View
+from polargs_plugin.types import View, validate_view
 
 __all__ = ["FORMATS", "detect_format", "load_views", "reader_options"]
 
@@ -112,4 +112,7 @@ def load_views(path: str | os.PathLike, fmt: str = "auto", **kwargs) -> list[Vie
         raise PolarInputError(
             path, f"option(s) {', '.join(unknown)} do not apply to a {fmt} dataset (its reader takes: {', '.join(known) or 'none'})"
         )
-    return FORMATS[fmt][2](Path(path), **kwargs)
+    views = FORMATS[fmt][2](Path(path), **kwargs)
+    for view in views:  # a NaN pixel in an EXR / HDR file must not reach training silently
+        validate_view(view, "load_views")
+    return views

@@ -48,7 +48,7 @@ from polargs_plugin.backends.reference.strategy import DensityConfig, DensityCon
 from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import photometric_loss
 from polargs_plugin.threads import ThreadPolicy
-from polargs_plugin.types import RenderOut, TrainingHooks, View
+from polargs_plugin.types import RenderOut, TrainingHooks, View, validate_view
 
 __all__ = ["TrainConfig", "Trainer", "TrainingHooks", "TrainingDiverged", "StepLogs", "CHECKPOINT_FORMAT"]
 
@@ -164,7 +164,7 @@ class Trainer:
         _seed_everything(cfg.seed)
         self.device = torch.device(cfg.device)
         for view in views:
-            _check_finite_view(view)
+            validate_view(view, "Trainer")
         self.views = [v.to(self.device) for v in views]
         _check_ssim_weight(cfg, hooks)
         self.hooks = hooks
@@ -449,14 +449,6 @@ class StepLogs(Mapping):
 
     def __repr__(self) -> str:
         return f"StepLogs({dict(self)})"
-
-
-def _check_finite_view(view: View) -> None:
-    """Refuse a view whose Stokes or camera hold NaN / inf (it would train to NaN silently)."""
-    for name in ("stokes", "K", "world_to_camera"):
-        bad = int((~torch.isfinite(getattr(view, name))).sum())
-        if bad:
-            raise PolarInputError(view.source or view.name, f"view '{view.name}': {name} has {bad} non-finite value(s)")
 
 
 def _check_finite_parameters(model: GaussianModel, where: str) -> None:
