@@ -40,12 +40,11 @@ the plug-in's ``use_depth_normal`` and ``use_scale`` are off unless ``keep_nativ
 
 from __future__ import annotations
 
-from typing import Any, Callable, ClassVar, Mapping, Sequence
+from typing import Any, ClassVar, Mapping
 
 import torch
 from torch import Tensor
 
-from polargs_plugin.config import PolarConfig
 from polargs_plugin.kit import depth_from_plane
 from polargs_plugin.kit.inria import InriaAdapter
 from polargs_plugin.ssim import ssim_map
@@ -72,28 +71,7 @@ class PgsrAdapter(InriaAdapter):
     statistics: ClassVar[tuple[str, ...]] = (
         "xyz_gradient_accum", "xyz_gradient_accum_abs", "denom", "denom_abs", "max_radii2D", "max_weight",
     )
-
-    def __init__(
-        self,
-        scene: Any,
-        gaussians: Any,
-        pipe: Any,
-        render: Callable[..., dict],
-        polar_views: Sequence[View],
-        *,
-        config: PolarConfig | None = None,
-        keep_native_terms: bool = False,
-        render_kwargs: Mapping[str, Any] | None = None,
-        max_gaussians: int | None = None,
-        source: str = "",
-    ) -> None:
-        if max_gaussians is None:
-            cap = getattr(gaussians, "max_all_points", None)
-            max_gaussians = int(cap) if cap is not None else None
-        super().__init__(
-            scene, gaussians, pipe, render, polar_views, config=config, keep_native_terms=keep_native_terms,
-            render_kwargs=render_kwargs, max_gaussians=max_gaussians, source=source,
-        )
+    model_cap: ClassVar[str | None] = "max_all_points"
 
     # ------------------------------------------------------------------ translation
     def loss_color(self, camera: Any, render_pkg: Mapping[str, Any]) -> Tensor:

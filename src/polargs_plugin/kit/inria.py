@@ -134,7 +134,8 @@ class InriaAdapter:
             :attr:`native_terms` are turned off unless ``keep_native_terms``.
         keep_native_terms: keep the plug-in's copies of terms the trainer already has.
         render_kwargs: extra keyword arguments of the trainer's ``render`` (GOF's ``kernel_size``).
-        max_gaussians: appends stop at this many Gaussians (None: no cap).
+        max_gaussians: appends stop at this many Gaussians (None: the model's own cap named by
+            :attr:`model_cap`, else no cap).
         source: the dataset folder, for messages.
 
     Attributes:
@@ -148,6 +149,9 @@ class InriaAdapter:
     statistics: ClassVar[tuple[str, ...]] = ("xyz_gradient_accum", "denom", "max_radii2D")
     #: whether the trainer's render package holds depth, normal and alpha (no extra pass needed).
     geometry_in_render: ClassVar[bool] = False
+    #: the model's attribute holding its own point cap (PGSR's ``max_all_points``): the default
+    #: of ``max_gaussians``.
+    model_cap: ClassVar[str | None] = None
 
     def __init__(
         self,
@@ -169,6 +173,8 @@ class InriaAdapter:
                 setattr(self.config.losses, switch, False)
         self.scene, self.gaussians, self.pipe, self.render = scene, gaussians, pipe, render
         self.render_kwargs = dict(render_kwargs or {})
+        if max_gaussians is None and self.model_cap is not None and getattr(gaussians, self.model_cap, None) is not None:
+            max_gaussians = int(getattr(gaussians, self.model_cap))
         self.max_gaussians = max_gaussians
         cameras = list(scene.getTrainCameras())
         self.cameras = {cam.image_name: cam for cam in cameras}
