@@ -95,6 +95,93 @@ def test_pool_reports_failed_cells_with_logs(tmp_path):
         run_cell(cells[0])
 
 
+def test_mesh_error_is_the_exact_signed_distance(tmp_path):
+    """mesh_error.npz of the report: vertices of spheres of radius 1.05 and 0.95 against the unit GT
+    sphere are +0.05 / -0.05 from it (analytic), up to the GT's tessellation; the nearest of many GT
+    samples (what it was computed from before) agrees to the samples' spacing and is never nearer."""
+    import numpy as np
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    from polargs_plugin.ablation.cell import mesh_error
+    from polargs_plugin.metrics import sample_surface
+
+    def sphere(radius: float) -> o3d.geometry.TriangleMesh:
+        return o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=40)
+
+    o3d.io.write_triangle_mesh(str(tmp_path / "pred.ply"), sphere(1.05) + sphere(0.95))
+    o3d.io.write_triangle_mesh(str(tmp_path / "gt.ply"), sphere(1.0))
+    error = mesh_error(tmp_path / "pred.ply", tmp_path / "gt.ply")
+    radius = np.linalg.norm(error["vertices"].astype(np.float64), axis=1)
+    outside = radius > 1
+    sag = 1 - math.cos(math.pi / 40)  # farthest a triangle of the GT sphere lies inside it
+    distance = error["signed_distance"].astype(np.float64)
+    assert outside.mean() == pytest.approx(0.5)
+    assert np.all(np.abs(distance[outside] - 0.05) < sag) and np.all(distance[outside] >= 0.05 - 1e-6)
+    assert np.all(np.abs(distance[~outside] + 0.05) < sag) and np.all(distance[~outside] <= -0.05 + 1e-6 + sag)
+
+    gt = sphere(1.0)
+    samples = sample_surface(gt, 400_000, seed=0)
+    nearest = cKDTree(samples).query(error["vertices"].astype(np.float64))[0]
+    assert np.all(nearest >= np.abs(distance) - 1e-6)
+    assert np.all(nearest - np.abs(distance) < 2e-3) and np.median(nearest - np.abs(distance)) < 1e-4
+
+
+def _fake_run(out: Path, variant: str, seed: int, figures: dict, chamfer: dict | None = None) -> None:
+    """A run folder as run_cell writes it, summary.json (and metrics.json) only."""
+    from polargs_plugin.ablation.cell import RUN_FORMAT
+
+    folder = out / f"{SCENE}__{variant}__hull__s{seed}"
+    folder.mkdir(parents=True)
+    summary = {"format": RUN_FORMAT, "scene": {"name": SCENE}, "variant": variant, "seed": seed, "init": "hull",
+               "init_used": "hull", "figures": figures, "timings": {"total": 1.0}, "git": {"commit": "abc"}}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    if chamfer is not None:
+        (folder / "metrics.json").write_text(json.dumps({"chamfer": chamfer}))
+
+
+def test_uncapped_figures_reach_the_results(tmp_path):
+    """The uncapped Chamfer / completeness and the median signed distance of summary["figures"] go
+    to results.csv / .json (per run, mean ± spread over seeds) and to the Markdown table; a run
+    folder from before they were in the summary gets them from its metrics.json."""
+    import csv
+
+    from polargs_plugin.ablation.gather import METRICS
+
+    new = ("chamfer_uncapped", "accuracy_uncapped", "completeness_uncapped", "accuracy_outliers",
+           "completeness_outliers", "signed_distance_median")
+    base = {"chamfer": 0.03, "accuracy": 0.035, "completeness": 0.025, "fscore": 0.4, "normal_mae_deg": 10.0,
+            "psnr": 25.0, "num_gaussians": 100, "train_seconds": 5.0, "iterations": 60}
+    for seed, (cu, comp, sd) in enumerate([(0.050, 0.0410, -0.043), (0.060, 0.0430, -0.041)]):
+        extra = {"chamfer_uncapped": cu, "accuracy_uncapped": 2 * cu - comp, "completeness_uncapped": comp,
+                 "accuracy_outliers": 0.2, "completeness_outliers": 0.08, "signed_distance_median": sd}
+        _fake_run(tmp_path, "base", seed, {**base, **extra})
+    old = {"chamfer_uncapped": 0.037, "accuracy_uncapped": 0.048, "completeness_uncapped": 0.0262,
+           "accuracy_outliers": 0.13, "completeness_outliers": 0.004, "signed_distance_median": -0.032}
+    _fake_run(tmp_path, "full", 0, dict(base), chamfer={**old, "chamfer": 0.03})
+    assert set(new) <= {key for key, _, _ in METRICS}
+
+    results = gather(tmp_path)
+    with open(tmp_path / "results.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert set(new) <= set(rows[0])
+    assert [float(r["completeness_uncapped"]) for r in rows] == [0.041, 0.043, 0.0262]
+    assert [float(r["signed_distance_median"]) for r in rows] == [-0.043, -0.041, -0.032]
+    table = {e["variant"]: e for e in json.loads((tmp_path / "results.json").read_text())["table"]}
+    assert table["base"]["chamfer_uncapped"]["mean"] == pytest.approx(0.055)
+    assert table["base"]["chamfer_uncapped"]["std"] == pytest.approx(0.01 / math.sqrt(2))
+    assert table["full"]["completeness_outliers"]["mean"] == 0.004 and table["full"]["chamfer"]["mean"] == 0.03
+    markdown = (tmp_path / "results.md").read_text()
+    assert markdown == results["markdown"] + "\n"
+    head, _, base_row, full_row = markdown.splitlines()[:4]
+    columns = [c.strip() for c in head.strip("|").split("|")]
+    cells = dict(zip(columns, [c.strip() for c in base_row.strip("|").split("|")]))
+    assert {k: cells[k] for k in ("Chamfer uncapped", "completeness uncapped", "median signed distance")} == {
+        "Chamfer uncapped": "0.055 ± 0.007071", "completeness uncapped": "0.042 ± 0.001414",
+        "median signed distance": "-0.042 ± 0.00141"}
+    assert "| 0.037 ± – | 0.0262 ± – | -0.032 ± – |" in full_row
+
+
 # ---------------------------------------------------------------------------------- training
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
@@ -111,7 +198,8 @@ def _check_run(folder: Path, variant: str) -> dict:
     assert (summary["polar_config"] is None) == (variant == "base")
     assert "commit" in summary["git"] and summary["timings"]["total"] > 0
     figures = summary["figures"]
-    for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians"):
+    for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians",
+                "chamfer_uncapped", "completeness_uncapped", "signed_distance_median"):
         assert _finite(figures[key]), (key, figures[key])
     lines = (folder / "curves.csv").read_text().strip().splitlines()
     assert lines[0].startswith("iteration,loss,psnr,num_gaussians,appended,appended_total") and len(lines) == 61

@@ -242,3 +242,68 @@ def test_object_region_culls_floor_and_unseen_gt():
     assert region["accuracy_uncapped"] < 0.6 * whole["accuracy_uncapped"]
     assert region["pred_kept_fraction"] < 0.5 and 0.5 < region["gt_kept_fraction"] < 0.95
     assert region["completeness_uncapped"] < 0.015  # sampling floor of 30 000 samples
+
+
+def cull_to_masks_direct(points, views, dilation_px, masks, require_seen):
+    """cull_to_masks as first written: every point projected in every view (the reference)."""
+    import cv2
+
+    keep, seen = np.ones(len(points), bool), np.zeros(len(points), bool)
+    for view, mask in zip(views, masks):
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilation_px + 1, 2 * dilation_px + 1))
+        mask = cv2.dilate(np.asarray(mask, np.uint8), disk)
+        w2c, K = view.world_to_camera.numpy(), view.K.numpy()
+        cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+        front = cam[:, 2] > 1e-9
+        zs = np.where(front, cam[:, 2], 1.0)
+        u = np.floor(K[0, 0] * cam[:, 0] / zs + K[0, 1] * cam[:, 1] / zs + K[0, 2])
+        v = np.floor(K[1, 1] * cam[:, 1] / zs + K[1, 2])
+        inside = front & (u >= 0) & (u < mask.shape[1]) & (v >= 0) & (v < mask.shape[0])
+        ui, vi = np.clip(u, 0, mask.shape[1] - 1).astype(int), np.clip(v, 0, mask.shape[0] - 1).astype(int)
+        keep &= ~inside | (mask[vi, ui] > 0)
+        seen |= inside
+    return keep & seen if require_seen else keep
+
+
+def test_chamfer_equals_the_direct_computation_and_the_analytic_distances():
+    """The fast path (SampleIndex, culling only the points still kept) gives the very floats of the
+    direct computation (cKDTree, every point in every view) on a prediction that is hard for a
+    tree search: a sphere of radius 0.95 inside the unit GT sphere plus a sphere of radius 0.4 near
+    the centre (its points are 0.5-0.7 from every GT sample, all almost equally far). Independent
+    truth: the analytic distances."""
+    from scipy.spatial import cKDTree
+
+    from polargs_plugin.metrics import mesh_silhouettes, visible_from_views
+
+    views = [silhouette_view(np.array(e, dtype=np.float64)) for e in ([3, 0, 1], [0, 3, 1], [-3, -1, 0.5])]
+    gt = sphere(1.0)
+    pred = sphere(0.95) + sphere(0.4, centre=(0.0, 0.0, 0.1))
+    num, max_dist = 40_000, 0.3
+    cd = chamfer_distance(pred, gt, num_samples=num, max_dist=max_dist, cull_views=views, region="object")
+
+    gt_points, pred_points = sample_surface(gt, num, 0), sample_surface(pred, num, 1)
+    keep = cull_to_masks_direct(pred_points, views, 2, mesh_silhouettes(gt, views), require_seen=True)
+    pred_points, gt_points = pred_points[keep], gt_points[visible_from_views(gt_points, views, gt)]
+    to_gt, to_pred = cKDTree(gt_points).query(pred_points)[0], cKDTree(pred_points).query(gt_points)[0]
+    direct = {
+        "accuracy": to_gt[to_gt <= max_dist].mean(), "completeness": to_pred[to_pred <= max_dist].mean(),
+        "accuracy_uncapped": to_gt.mean(), "completeness_uncapped": to_pred.mean(),
+        "accuracy_outliers": (to_gt > max_dist).mean(), "completeness_outliers": (to_pred > max_dist).mean(),
+        "precision": (to_gt < cd["fscore_threshold"]).mean(), "recall": (to_pred < cd["fscore_threshold"]).mean(),
+        "num_pred_points": len(pred_points), "num_gt_points": len(gt_points),
+    }
+    for key, value in direct.items():
+        assert cd[key] == value, key  # equal, not approximately
+    assert cd["chamfer_uncapped"] == (to_gt.mean() + to_pred.mean()) / 2
+
+    # analytic (whole meshes, every GT point kept): 1 - |p| from the GT sphere, 0.05 for the shell and
+    # 0.5-0.7 for the inner sphere, above it by at most the GT's tessellation (1 - cos(pi / 100) ~ 5e-4)
+    # and the sampling floor
+    whole = chamfer_distance(pred, gt, num_samples=num, max_dist=max_dist)
+    truth = 1 - np.linalg.norm(sample_surface(pred, num, 1), axis=1)
+    inner = truth > 0.3
+    assert 0.1 < inner.mean() < 0.2 and whole["accuracy_outliers"] == inner.mean()
+    assert whole["accuracy"] == pytest.approx(truth[~inner].mean(), abs=1e-3) and whole["accuracy"] == pytest.approx(0.05, abs=2e-3)
+    assert whole["accuracy_uncapped"] == pytest.approx(truth.mean(), abs=1e-3)
+    assert whole["completeness"] == whole["completeness_uncapped"] == pytest.approx(0.05, abs=2e-3)
+    assert whole["signed_distance_median"] == pytest.approx(-0.05, abs=2e-3) and whole["inside_fraction"] == 1.0

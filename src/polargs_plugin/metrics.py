@@ -2,10 +2,11 @@
 
 Chamfer protocol (docs/evaluation.md): both meshes are sampled area-uniformly (seeded); with
 views given, the evaluation is restricted to the observed object (predicted points culled to
-the dilated object silhouettes, GT points kept where some view sees them); nearest neighbours
-come from scipy's cKDTree. accuracy = mean distance pred -> GT, completeness = mean distance
-GT -> pred, chamfer = their mean. As in the DTU script, distances above ``max_dist`` are dropped
-from the means (not clipped); the same means without the cap are reported as ``*_uncapped``.
+the dilated object silhouettes, GT points kept where some view sees them); nearest-neighbour
+distances are exact (:mod:`polargs_plugin.nearest`: the same floats as scipy's cKDTree).
+accuracy = mean distance pred -> GT, completeness = mean distance GT -> pred, chamfer = their
+mean. As in the DTU script, distances above ``max_dist`` are dropped from the means (not
+clipped); the same means without the cap are reported as ``*_uncapped``.
 F-score at ``fscore_threshold`` uses all points. The signed distance of the predicted points to
 the GT surface (outside positive) tells a mesh that sits inside from one that sits outside.
 Distances are in the meshes' own units; bring the prediction into the ground truth's frame and
@@ -22,9 +23,9 @@ import numpy as np
 import open3d as o3d
 import torch
 import torch.nn.functional as F
-from scipy.spatial import cKDTree
 from torch import Tensor
 
+from polargs_plugin.nearest import SampleIndex
 from polargs_plugin.types import View
 
 __all__ = [
@@ -93,7 +94,8 @@ def sample_surface(mesh: MeshLike, num: int, seed: int = 0) -> np.ndarray:
     r1, r2 = rng.random(int(num)), rng.random(int(num))
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
-    return a[face] + r1[:, None] * (b[face] - a[face]) + r2[:, None] * (c[face] - a[face])
+    a, b, c = a[face], b[face], c[face]  # gathered once: the random gathers are the slow part
+    return a + r1[:, None] * (b - a) + r2[:, None] * (c - a)
 
 
 def cull_to_masks(
@@ -125,6 +127,10 @@ def cull_to_masks(
     if masks is not None and len(masks) != len(views):
         raise ValueError(f"cull_to_masks: {len(views)} views but {len(masks)} masks")
     for index, view in enumerate(views):
+        # a dropped point stays dropped: project only the points still kept (3-4x less work)
+        todo = np.flatnonzero(keep)
+        if len(todo) == 0:
+            break
         if masks is not None:
             mask = np.asarray(masks[index], dtype=np.uint8)
         elif view.mask is None:
@@ -137,7 +143,7 @@ def cull_to_masks(
         height, width = mask.shape
         w2c = view.world_to_camera.detach().cpu().numpy().astype(np.float64)
         K = view.K.detach().cpu().numpy().astype(np.float64)
-        cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+        cam = points[todo] @ w2c[:3, :3].T + w2c[:3, 3]
         z = cam[:, 2]
         front = z > 1e-9
         zs = np.where(front, z, 1.0)
@@ -146,13 +152,20 @@ def cull_to_masks(
         inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         ui = np.clip(u, 0, width - 1).astype(np.int64)
         vi = np.clip(v, 0, height - 1).astype(np.int64)
-        keep &= ~inside | (mask[vi, ui] > 0)
-        seen |= inside
+        keep[todo] = ~inside | (mask[vi, ui] > 0)
+        seen[todo] |= inside
     return keep & seen if require_seen else keep
 
 
 def _nn_distances(query: np.ndarray, target: np.ndarray) -> np.ndarray:
-    return cKDTree(target).query(query, k=1, workers=-1)[0]
+    """(Q,) distance from each of the (Q, 3) ``query`` points to the nearest of the (N, 3) ``target``
+    points: exact, the same floats as scipy's ``cKDTree.query``, on the thread policy's threads.
+
+    :class:`~polargs_plugin.nearest.SampleIndex` instead of cKDTree: cKDTree's box leaves make a
+    query far from a surface's samples search hundreds of leaves (85 s instead of 1 s for the
+    demo's 250k predicted points, many of them inside the GT sphere; see polargs_plugin.nearest).
+    """
+    return SampleIndex.build(target).query(query)[0]
 
 
 def _raycasting_scene(mesh: MeshLike) -> o3d.t.geometry.RaycastingScene:

@@ -307,11 +307,14 @@ def write_report(out: str | os.PathLike, results: dict[str, Any] | None = None, 
     lines.append(f"Folder `{out}`; {len(rows)} runs; written {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}; "
                  f"git commit {', '.join(c[:12] if c != 'None' else 'unknown' for c in commits) or 'unknown'}.")
     lines += ["", "## Results", "", results.get("markdown") or "(no finished runs)", ""]
-    lines += [f"Chamfer (accuracy + completeness) / 2 against the GT mesh in {units}, predicted points culled to "
-              "the dilated view masks, distances above 5 % of the GT box diagonal dropped (`polargs eval`, "
-              "docs/evaluation.md); normal MAE = mean angle between rendered and GT normals inside the GT masks "
+    lines += [f"Chamfer (accuracy + completeness) / 2 against the GT mesh in {units}, restricted to the observed "
+              "object, distances above 5 % of the GT box diagonal dropped (`polargs eval`, docs/evaluation.md); "
+              "\"uncapped\": the same means over every point (a missing or sunken part of the mesh shows there); "
+              "median signed distance of the predicted points to the GT surface (negative = inside); "
+              "normal MAE = mean angle between rendered and GT normals inside the GT masks "
               "of every training view. Mean ± sample standard deviation over seeds; \"vs base\" / \"vs reg\": "
-              "relative change of the mean (negative = better). Per-run figures: results.csv, results.json.", ""]
+              "relative change of the mean (negative = better). Per-run figures (also accuracy uncapped and the "
+              "fractions the cap dropped): results.csv, results.json.", ""]
     lines += ["## Variants", ""] + [f"- `{v}`: {DESCRIPTIONS[v]}" for v in VARIANTS] + [""]
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
