@@ -3,30 +3,35 @@
 Scene: a bundled scene (``generate_scene``, default glossy_plane_sphere), 24 views 128x128; the
 Gaussians come from a short warm-up training (``TrainConfig.cpu`` schedule, capped at 6000) so
 that opacities and sizes look like a model in training, not like an initialisation. Measured in
-ONE run, each part in a worker subprocess started with the thread policy's environment (so that
-``OMP_WAIT_POLICY`` reaches torch's OpenMP runtime, which reads it at ``import torch``):
+ONE run, in worker subprocesses started with the thread policy's environment (so that
+``OMP_WAIT_POLICY`` reaches torch's OpenMP runtime, which reads it at ``import torch``). Each
+group of parts below runs in a process of its own, as a training does (a process holding several
+trainers runs each of them slower: their data evict each other's from the caches), and the groups
+take turns, ``--rounds`` times, so that load changes on a shared machine hit all of them alike:
 
-- raster: the rasterizer's forward + backward alone (render of the view the next Base step uses,
-  a fixed random weighting of its colour, backward through the activations), SH degree 1 and 3;
-- base: the whole Base step (render, colour loss with SSIM, backward, Adam, density statistics
-  and control: paper schedule at iterations 7001-7000+S, so one refinement in 100 steps), SH 1, 3;
-- reference: today's step as it was before issue 9 (kornia's SSIM, the torch projection with its
-  autograd graph when the rasterizer offers ``projection="torch"``, a float() of every figure and
-  an MSE every step, boolean-indexed density statistics), SH 1;
-- hooks: the step with PolarHooks (PC, L_dn, L_scale on, Dense off; PolarConfig.synthetic()), SH 1;
-  these five are interleaved step by step, so that load changes hit all of them alike;
+- raster + base + hooks (SH 1; raster + base again with SH 3): the rasterizer's forward +
+  backward alone (render of the view the next Base step uses, a fixed random weighting of its
+  colour, backward through the activations), the whole Base step (render, colour loss with SSIM,
+  backward, Adam, density statistics and control: paper schedule at iterations 7001-7000+S, so one
+  refinement in 100 steps) and the step with PolarHooks (PC, L_dn, L_scale on, Dense off;
+  PolarConfig.synthetic()), taking turns in blocks of ``--block`` steps from the same Gaussians;
+- reference: today's step as it was before issue 9, inside this package (kornia's SSIM, the torch
+  projection with its autograd graph, a float() of every figure and an MSE every step,
+  boolean-indexed density statistics), SH 1; with ``--reference-src DIR`` also the package as it
+  was before issue 9 (``git archive bfaaf45 src | tar -x -C DIR``), first in every round: the
+  ``speedup_vs_reference`` figure;
 - dense: one Dense call (all PatchMatch rounds, filters, seeding) on this scene, after a warm-up
-  call; its share of a whole run with the paper's window (1k-7k every 100 = 61 calls):
-  ``61 t_dense / (iterations t_hooks + 61 t_dense)`` for ``--iterations``;
+  call; its share of a whole run with the paper's window (61 calls: 1k-7k every 100, or the CPU
+  preset's 500-3500 every 50): ``61 t_dense / (iterations t_hooks + 61 t_dense)`` for
+  ``--iterations`` (default: the CPU preset's 5000);
 - contention: a Base step loop alone, then two of them side by side (two processes); per-step
   median time side by side over alone;
-- peak RSS: of a single Base training process (the contention loop), and of the measuring worker
-  (which holds four trainers).
+- peak RSS: of a single Base training process (the contention loop), and the largest of all workers.
 
-The table's figures are wall seconds (mean over the S measured steps; CPU seconds in brackets,
-less sensitive to other processes). The last line is one JSON object.
+The table's figures are wall seconds (mean over the measured steps and rounds; CPU seconds in
+brackets, less sensitive to other processes). The last line is one JSON object.
 
-    .venv/bin/python bench/train_step.py                     # the issue's settings, 2 threads
+    .venv/bin/python bench/train_step.py --reference-src DIR   # the issue's settings, 2 threads
     .venv/bin/python bench/train_step.py --numba-layer omp --wait-policy none   # before issue 9
     .venv/bin/python bench/train_step.py --equivalence 200   # new step vs old step, same seed
 """
@@ -48,7 +53,7 @@ from pathlib import Path
 # Nothing imports torch or numba at module level before a worker has its environment: the
 # orchestrator passes the policy's environment to every worker subprocess.
 
-DENSE_CALLS = 61  # the paper's window, 1000..7000 every 100
+DENSE_CALLS = 61  # the paper's window, 1000..7000 every 100 (the CPU preset's 500..3500 every 50)
 START_ITER = 7000  # measured steps: L_dn on (from 7000), refinement every 100 (until 15000)
 
 
@@ -229,64 +234,90 @@ def _raster(trainer, weights) -> None:
     trainer.model.optimizer.zero_grad(set_to_none=True)
 
 
-def worker_measure(args) -> dict:
-    import torch
+#: The measured parts, in groups that share one worker process and take turns in blocks of
+#: --block steps: the parts compared with each other (the rasterizer alone, the Base step and the
+#: step with hooks) see the same load changes. Each group, like the package before issue 9, runs
+#: in a process of its own: a process holding more trainers runs each of them slower (their data
+#: evict each other's from the caches), which a training never sees.
+GROUPS: tuple[tuple[str, ...], ...] = (("raster1", "base1", "hooks1"), ("reference1",), ("raster3", "base3"))
 
+
+def _runner(args, views, params, name: str, hooks=None):
+    """The trainer a part steps (``raster1`` renders with ``base1``'s)."""
     from polargs_plugin.config import PolarConfig
     from polargs_plugin.hooks import PolarHooks
+
+    if name in ("base1", "base3"):
+        return _trainer(args, views, params, int(name[-1]))
+    if name == "hooks1":
+        if hooks is None:
+            polar = PolarConfig.synthetic()
+            polar.cache_dir = str(Path(args.tmp) / "maps")
+            polar.densify.enabled = False
+            hooks = PolarHooks(polar)
+        return _trainer(args, views, params, 1, hooks=hooks)
+    return _trainer(args, views, params, 1, cls=legacy_trainer_class(reference=True))
+
+
+def worker_measure(args) -> dict:
+    """The parts of group ``--group`` (an index into GROUPS), interleaved in blocks of ``--block``
+    steps; or one Dense call (``--group dense``)."""
+    import torch
 
     applied = _policy(args).apply()
     views = _scene(args).views
     params = _warm_params(args, views, Path(args.tmp) / "warm.pt")
-    cache = str(Path(args.tmp) / "maps")
-    polar = PolarConfig.synthetic()
-    polar.cache_dir = cache
-    polar.densify.enabled = False
-    reference_cls = legacy_trainer_class(reference=True)
-    runners = {
-        "base1": _trainer(args, views, params, 1),
-        "base3": _trainer(args, views, params, 3),
-        "hooks1": _trainer(args, views, params, 1, hooks=PolarHooks(polar)),
-        "reference1": _trainer(args, views, params, 1, cls=reference_cls),
-    }
+    result = {"threads": {"torch": torch.get_num_threads(), "numba": applied.numba_threads, "layer": applied.layer(),
+                          "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"), "notes": applied.notes}}
+    if args.group == "dense":
+        result["dense"] = _measure_dense(args, views, params)
+        result["peak_rss_mib"] = _rss_mib()
+        return result
+    parts = GROUPS[int(args.group)]
+    trainers = [name for name in parts if not name.startswith("raster")]
     gen = torch.Generator().manual_seed(7)
     weights = torch.rand(3, args.size, args.size, generator=gen)
+    runners = {name: _runner(args, views, params, name) for name in trainers}
     for t in runners.values():  # warm-up outside the measured window: JIT, preprocess, allocator
         t._prepare()
         _raster(t, weights)
-    for name in list(runners):  # one warm-up step each, then back to START_ITER on fresh copies
-        runners[name].step()
-    runners = {
-        "base1": _trainer(args, views, params, 1),
-        "base3": _trainer(args, views, params, 3),
-        "hooks1": _trainer(args, views, params, 1, hooks=runners["hooks1"].hooks),
-        "reference1": _trainer(args, views, params, 1, cls=reference_cls),
-    }
-    times: dict[str, list[tuple[float, float]]] = {k: [] for k in ("raster1", "raster3", *runners)}
+        t.step()
+    # Back to START_ITER on fresh trainers (the hooks keep their preprocessed maps).
+    runners = {name: _runner(args, views, params, name, hooks=t.hooks) for name, t in runners.items()}
+    times: dict[str, list[tuple[float, float]]] = {k: [] for k in parts}
 
     def timed(name, fn):
         wall, cpu = time.perf_counter(), time.process_time()
         fn()
         times[name].append((time.perf_counter() - wall, time.process_time() - cpu))
 
-    for _ in range(args.steps):
-        timed("raster1", lambda: _raster(runners["base1"], weights))
-        timed("base1", runners["base1"].step)
-        timed("hooks1", runners["hooks1"].step)
-        timed("reference1", runners["reference1"].step)
-        timed("raster3", lambda: _raster(runners["base3"], weights))
-        timed("base3", runners["base3"].step)
-    result = {
-        name: {"wall": statistics.fmean(w for w, _ in v), "cpu": statistics.fmean(c for _, c in v),
-               "median": statistics.median(w for w, _ in v)}
-        for name, v in times.items()
-    }
+    steps = {name: (lambda t=runners["base" + name[-1]]: _raster(t, weights)) if name.startswith("raster")
+             else runners[name].step for name in parts}
+    # In blocks of --block consecutive steps: the parts of a group take turns (load changes hit both
+    # alike) and each runs as in a training (its data warm in the caches after a block's first step).
+    for _ in range(max(1, args.steps // args.block)):
+        for name in parts:
+            for _ in range(args.block):
+                timed(name, steps[name])
+    for name, v in times.items():
+        result[name] = {"wall": statistics.fmean(w for w, _ in v), "cpu": statistics.fmean(c for _, c in v),
+                        "median": statistics.median(w for w, _ in v)}
     result["num_gaussians"] = {k: t.model.num for k, t in runners.items()}
-    result["reference_torch_projection"] = bool(reference_cls.torch_projection)
+    if "reference1" in runners:
+        result["reference_torch_projection"] = bool(type(runners["reference1"]).torch_projection)
+    result["peak_rss_mib"] = _rss_mib()
+    return result
 
-    # Dense: one call (PatchMatch rounds, filters, seeding) in the paper's window, after a warm-up.
+
+def _measure_dense(args, views, params) -> dict:
+    """One Dense call (PatchMatch rounds, filters, seeding) in the paper's window, after a warm-up."""
+    import torch
+
+    from polargs_plugin.config import PolarConfig
+    from polargs_plugin.hooks import PolarHooks
+
     dense_cfg = PolarConfig.synthetic()
-    dense_cfg.cache_dir = cache
+    dense_cfg.cache_dir = str(Path(args.tmp) / "maps")
     dense_hooks = PolarHooks(dense_cfg)
     trainer = _trainer(args, views, params, 1, hooks=dense_hooks)
     trainer._prepare()
@@ -299,12 +330,8 @@ def worker_measure(args) -> dict:
             new = dense_hooks.densify(1000, view, trainer.render, trainer.model.state(), render=render)
             dense.append((time.perf_counter() - wall, time.process_time() - cpu, 0 if new is None else len(new)))
     dense = dense[1:]  # the first call compiles / loads the numba cache
-    result["dense"] = {"wall": statistics.fmean(d[0] for d in dense), "cpu": statistics.fmean(d[1] for d in dense),
-                       "appended": statistics.fmean(d[2] for d in dense)}
-    result["threads"] = {"torch": torch.get_num_threads(), "numba": applied.numba_threads, "layer": applied.layer(),
-                         "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"), "notes": applied.notes}
-    result["peak_rss_mib"] = _rss_mib()
-    return result
+    return {"wall": statistics.fmean(d[0] for d in dense), "cpu": statistics.fmean(d[1] for d in dense),
+            "appended": statistics.fmean(d[2] for d in dense)}
 
 
 def worker_old(args) -> dict:
@@ -357,7 +384,7 @@ def worker_loop(args) -> dict:
 # ---------------------------------------------------------------------------- orchestrator
 def _worker_cmd(args, mode: str, extra: list[str] | None = None) -> list[str]:
     cmd = [sys.executable, __file__, "--worker", mode, "--tmp", args.tmp]
-    for key in ("scene", "views", "size", "gaussians", "threads", "steps", "numba_layer", "wait_policy",
+    for key in ("scene", "views", "size", "gaussians", "threads", "steps", "block", "numba_layer", "wait_policy",
                 "warmup_iterations", "dense_calls", "seconds"):
         cmd += [f"--{key.replace('_', '-')}", str(getattr(args, key))]
     return cmd + (extra or [])
@@ -372,10 +399,10 @@ def _worker_env(args) -> dict:
     return env
 
 
-def _run_workers(args, mode: str, count: int) -> list[dict]:
+def _run_workers(args, mode: str, count: int, options: list[str] | None = None) -> list[dict]:
     start_at = time.time() + (45 if count > 1 else 0)  # side by side: both start measuring together
     env = _worker_env(args)
-    extra = ["--start-at", str(start_at)] if count > 1 else []
+    extra = (["--start-at", str(start_at)] if count > 1 else []) + (options or [])
     if mode == "old":  # the old package first on the path; this file's helpers still import from it
         env["PYTHONPATH"] = os.pathsep.join([str(Path(args.reference_src).resolve()), env.get("PYTHONPATH", "")])
         extra += ["--reference-src", str(Path(args.reference_src).resolve() / "polargs_plugin")]
@@ -390,6 +417,33 @@ def _run_workers(args, mode: str, count: int) -> list[dict]:
             raise SystemExit(f"worker {mode} failed ({p.returncode})")
         results.append(json.loads(out.strip().splitlines()[-1]))
     return results
+
+
+def _measure_groups(args) -> tuple[list[dict], dict]:
+    """Every group of GROUPS in a worker of its own, ``--rounds`` times in turn (with the package
+    before issue 9 first in each round), then one Dense worker. Returns the reference runs and, per
+    part, the mean wall / CPU time and the median over the rounds, plus the workers' details."""
+    old, runs, details = [], {}, {}
+    for _ in range(args.rounds):
+        if args.reference_src:
+            old += _run_workers(args, "old", 1)
+        for index, group in enumerate(GROUPS):
+            out = _run_workers(args, "measure", 1, ["--group", str(index)])[0]
+            for name in group:
+                runs.setdefault(name, []).append(out[name])
+            details.setdefault("num_gaussians", {}).update(out["num_gaussians"])
+            details.setdefault("rss", []).append(out["peak_rss_mib"])
+            details["threads"] = out["threads"]
+            details.setdefault("reference_torch_projection", out.get("reference_torch_projection"))
+            if "reference_torch_projection" in out:
+                details["reference_torch_projection"] = out["reference_torch_projection"]
+    dense = _run_workers(args, "measure", 1, ["--group", "dense"])[0]
+    m = {name: {key: statistics.fmean(r[key] for r in rs) for key in ("wall", "cpu", "median")}
+         for name, rs in runs.items()}
+    m.update(dense=dense["dense"], threads=details["threads"], num_gaussians=details["num_gaussians"],
+             reference_torch_projection=details["reference_torch_projection"],
+             peak_rss_mib=max(details["rss"] + [dense["peak_rss_mib"]]))
+    return old, m
 
 
 def _prepare_warm(args) -> None:
@@ -438,8 +492,12 @@ def main() -> int:
     parser.add_argument("--gaussians", type=int, default=6000)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--steps", type=int, default=100, help="measured steps per configuration (interleaved)")
-    parser.add_argument("--iterations", type=int, default=10_000,
-                        help="run length for the Dense share (the proposed CPU preset's iteration count)")
+    parser.add_argument("--block", type=int, default=10,
+                        help="consecutive steps of one part before the next part of its group (1: step by step)")
+    parser.add_argument("--rounds", type=int, default=2, help="times every group's worker runs, in turn")
+    parser.add_argument("--group", help=argparse.SUPPRESS)
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="run length for the Dense share (default: the CPU preset's, TrainConfig.cpu().iterations)")
     parser.add_argument("--numba-layer", default="workqueue", choices=("workqueue", "omp", "tbb", "default"))
     parser.add_argument("--wait-policy", default="passive", choices=("passive", "active", "none"))
     parser.add_argument("--warmup-iterations", type=int, default=150)
@@ -457,6 +515,11 @@ def main() -> int:
     parser.add_argument("--tmp", help=argparse.SUPPRESS)
     parser.add_argument("--start-at", type=float, default=0.0, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.iterations is None and args.worker is None:
+        # Not at module level: the reference worker imports this file with the old package first.
+        from polargs_plugin.config import CPU_FACTOR  # plain dataclasses: loads neither torch nor numba
+
+        args.iterations = round(30_000 * CPU_FACTOR)
 
     if args.worker:
         if args.worker == "prepare":
@@ -486,9 +549,7 @@ def main() -> int:
             print(json.dumps({"contention_slowdown": slowdown, "contention_cpu_slowdown": cpu, "alone": alone,
                               "pair": pair, "load_before": load_before, "load_after": _load()}))
             return 0
-        old = [_run_workers(args, "old", 1)[0]] if args.reference_src else []
-        m = _run_workers(args, "measure", 1)[0]
-        old += _run_workers(args, "old", 1) if args.reference_src else []
+        old, m = _measure_groups(args)
         contention = None
         if not args.no_contention:
             alone = _run_workers(args, "loop", 1)[0]
@@ -521,11 +582,12 @@ def main() -> int:
         "reference_torch_projection": m["reference_torch_projection"],
         "reference_package": old[0]["package"] if old else None,
         "load_before": load_before,
+        "block": args.block,
         "load_after": _load(),
     }
     print(f"train-step bench: {args.scene}, {args.views} views {args.size}x{args.size}, ~{figures['num_gaussians']} "
           f"Gaussians, {args.threads} threads (torch {m['threads']['torch']}, numba {m['threads']['numba']} "
-          f"'{m['threads']['layer']}', OMP_WAIT_POLICY={m['threads']['OMP_WAIT_POLICY']}), {args.steps} interleaved "
+          f"'{m['threads']['layer']}', OMP_WAIT_POLICY={m['threads']['OMP_WAIT_POLICY']}), {args.steps} steps per part and round, in blocks of {args.block}, each group in its own process, {args.rounds} round(s) "
           f"steps from iteration {START_ITER + 1}; load average {load_before} -> {figures['load_after']} "
           f"({os.cpu_count()} CPUs)")
     for note in m["threads"]["notes"]:

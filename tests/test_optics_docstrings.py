@@ -1,9 +1,11 @@
-"""Every docstring example of optics/ and viz, run one by one."""
+"""Every docstring example of optics/, viz, config and the fused L_dn, run one by one."""
 
 import doctest
 
 import pytest
 
+import polargs_plugin.config
+import polargs_plugin.depth_normal
 import polargs_plugin.optics.azimuth
 import polargs_plugin.optics.fresnel
 import polargs_plugin.optics.mosaic
@@ -17,7 +19,9 @@ MODULES = [
     polargs_plugin.optics.stokes,
     polargs_plugin.viz,
 ]
-EXAMPLES = [test for module in MODULES for test in doctest.DocTestFinder().find(module) if test.examples]
+# Modules whose examples run too, without an example required of every public name.
+ALSO_RUN = [polargs_plugin.config, polargs_plugin.depth_normal]
+EXAMPLES = [test for module in MODULES + ALSO_RUN for test in doctest.DocTestFinder().find(module) if test.examples]
 
 
 def test_every_public_function_has_an_example():

@@ -252,7 +252,7 @@ def test_masked_target_uses_the_background(views):
 
 def test_config_round_trip_and_cpu_preset_scaling():
     cfg = TrainConfig.cpu(0.1, seed=3)
-    assert cfg.iterations == 3000 and cfg.seed == 3 and TrainConfig.cpu().iterations == 600
+    assert cfg.iterations == 3000 and cfg.seed == 3 and TrainConfig.cpu().iterations == 5000
     again = TrainConfig.from_dict(cfg.to_dict())
     assert again == cfg
     d = cfg.density.scaled(cfg.schedule_scale)
@@ -319,3 +319,26 @@ def test_progress_bar_ends_on_the_summary_psnr(views, capsys):
     figures = trainer.train()
     shown = re.findall(r"psnr=([0-9.]+)", capsys.readouterr().err)
     assert shown and float(shown[-1]) == pytest.approx(figures["psnr"], abs=0.006)
+
+
+def test_cpu_preset_runs_the_paper_polargs_schedule_at_half_its_counts():
+    """Issue 9's CPU preset: 5000 vanilla iterations (x1/6) with the paper's Dense window 1k-7k every
+    100 and L_dn start 7k scaled by 1/2 (at most 2x), the same in the library, `polargs ablate` and
+    `polargs train --schedule cpu`; a --factor F scales PolarGS by min(1, 3F)."""
+    from polargs_plugin.ablation.variants import polar_config as variant_polar, train_config as variant_train
+    from polargs_plugin.cli.train import polar_config as cli_polar
+    from polargs_plugin.config import PolarConfig, polar_schedule_factor
+
+    paper = PolarConfig.synthetic()
+    assert (paper.densify.start_iter, paper.densify.end_iter, paper.densify.interval) == (1000, 7000, 100)
+    assert paper.losses.depth_normal_from_iter == 7000
+    train = TrainConfig.cpu()
+    assert train.iterations == 5000 and variant_train().iterations == 5000
+    for polar in (PolarConfig.cpu_demo(), variant_polar("full"), cli_polar("synthetic", train.schedule_scale, {}, "test")):
+        d = polar.densify
+        assert (d.start_iter, d.end_iter, d.interval) == (500, 3500, 50)
+        assert polar.losses.depth_normal_from_iter == 3500
+        assert d.end_iter < train.iterations
+    assert polar_schedule_factor(0.002) == pytest.approx(0.006) and polar_schedule_factor(0.5) == 1.0
+    with pytest.raises(ValueError):
+        polar_schedule_factor(0)

@@ -112,8 +112,8 @@ def test_preset_real_and_schedule_are_separate_axes(fake_dataset, tmp_path, caps
     assert summary["preset"] == "real" and summary["schedule"] == "cpu"
     assert polar["densify"]["patchmatch"]["lambda_aolp"] == 0.2 and polar["losses"]["alpha_normal"] == 0.1
     assert polar["densify"]["enabled"] is False and summary["switches"] == ["--no-dense"]
-    # the cpu schedule scales PolarGS' own schedule too (Dense from iteration 1000 x 0.02)
-    assert polar["densify"]["start_iter"] == 20 and polar["losses"]["depth_normal_from_iter"] == 140
+    # the cpu schedule scales PolarGS' own schedule too, by half (Dense from iteration 1000 x 0.5)
+    assert polar["densify"]["start_iter"] == 500 and polar["losses"]["depth_normal_from_iter"] == 3500
     # the old --preset cpu still selects the schedule, with a note
     legacy = tmp_path / "legacy"
     assert main(["train", "fake", "--out", str(legacy), "--iters", "2", "--quiet", "--preset", "cpu", "--no-polar"]) == 0

@@ -3,7 +3,8 @@
 Thresholds the paper writes in 8-bit units (160..255) are converted here, once, to [0, 1].
 Choices the paper leaves open are documented in docs/choices.md and exposed as fields.
 Presets: ``PolarConfig.real()`` and ``PolarConfig.synthetic()`` (the paper's two settings) and
-``PolarConfig.cpu_demo()`` (schedules scaled for short CPU runs).
+``PolarConfig.cpu_demo()`` (schedules scaled for CPU runs; :func:`polar_schedule_factor` gives the
+factor that goes with a vanilla schedule factor, docs/speed.md "CPU preset").
 """
 
 from __future__ import annotations
@@ -19,7 +20,33 @@ __all__ = [
     "FilterConfig",
     "PolarConfig",
     "eight_bit",
+    "CPU_FACTOR",
+    "POLAR_SCHEDULE_STRETCH",
+    "polar_schedule_factor",
 ]
+
+#: Vanilla schedule factor of the CPU preset (``TrainConfig.cpu()``): 30k iterations -> 5000.
+CPU_FACTOR = 1 / 6
+
+#: The CPU preset compresses the PolarGS schedules (Dense window and interval, L_dn start, L_n end)
+#: this many times less than the vanilla one (``TrainConfig.cpu``'s factor): at the preset's
+#: vanilla factor 1/6 (5000 iterations), the paper's Dense 1k-7k every 100 and L_dn from 7k become
+#: 500-3500 every 50 and 3500, i.e. scaled by 1/2 (docs/speed.md, "CPU preset").
+POLAR_SCHEDULE_STRETCH = 3.0
+
+
+def polar_schedule_factor(train_factor: float) -> float:
+    """Factor of the PolarGS schedules for a run whose vanilla schedule is scaled by
+    ``train_factor``: :data:`POLAR_SCHEDULE_STRETCH` times it, at most 1 (the paper's own counts).
+
+    >>> polar_schedule_factor(1 / 6)
+    0.5
+    >>> polar_schedule_factor(1.0)
+    1.0
+    """
+    if not train_factor > 0:
+        raise ValueError(f"train_factor must be positive, got {train_factor}")
+    return min(1.0, POLAR_SCHEDULE_STRETCH * train_factor)
 
 
 def eight_bit(value: float) -> float:
@@ -172,8 +199,10 @@ class PolarConfig:
         return cfg
 
     @classmethod
-    def cpu_demo(cls, factor: float = 0.05) -> "PolarConfig":
-        """Synthetic preset with every iteration schedule multiplied by ``factor``."""
+    def cpu_demo(cls, factor: float = 0.5) -> "PolarConfig":
+        """Synthetic preset with every iteration schedule multiplied by ``factor``; the default 0.5
+        is the CPU preset's (Dense 500-3500 every 50, L_dn from 3500, L_n until 3550), which goes
+        with ``TrainConfig.cpu()`` (see :func:`polar_schedule_factor`)."""
         cfg = cls.synthetic()
         d = cfg.densify
         d.start_iter = int(d.start_iter * factor)

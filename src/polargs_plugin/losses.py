@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from polargs_plugin.depth_normal import depth_normal_loss_fused
 from polargs_plugin.ssim import gaussian_kernel1d, ssim_from_moments, ssim_map
 
 __all__ = [
@@ -396,7 +397,20 @@ def depth_normal_loss(depth: Tensor, normal: Tensor, alpha: Tensor, K: Tensor) -
 
     Returns:
         Scalar in [0, 2], 0 where no pixel is valid or alpha is 0.
+
+    Note:
+        On CPU float32/float64 tensors the fused kernel of :mod:`polargs_plugin.depth_normal`
+        runs (same value, hand-written backward, once differentiable); elsewhere (CUDA, under
+        ``torch.func`` transforms or tracing) these torch operations with autograd.
     """
+    fused = depth.device.type == "cpu" and depth.dtype in (torch.float32, torch.float64) and min(depth.shape[-2:]) >= 3
+    if fused and not (torch.jit.is_tracing() or torch._C._are_functorch_transforms_active()):
+        return depth_normal_loss_fused(depth, normal.to(depth.dtype), alpha, K)
+    return _depth_normal_loss_torch(depth, normal, alpha, K)
+
+
+def _depth_normal_loss_torch(depth: Tensor, normal: Tensor, alpha: Tensor, K: Tensor) -> Tensor:
+    """:func:`depth_normal_loss` by torch operations (any device, autograd)."""
     depth_normal, valid = normal_from_depth(depth, K)
     weight = alpha.detach() * valid
     cosine = (depth_normal * safe_normalize(normal, dim=0)).sum(dim=0, keepdim=True)

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from polargs_plugin.config import CPU_FACTOR
+
 __all__ = ["VARIANTS", "DESCRIPTIONS", "PRESETS", "DEFAULT_FACTOR", "variant_configs", "polar_config", "train_config", "parse_variants"]
 
 VARIANTS: tuple[str, ...] = ("base", "reg", "no-dense", "no-pc", "full")
@@ -29,10 +31,11 @@ DESCRIPTIONS: dict[str, str] = {
     "full": "PC + Dense + L_n + L_dn + L_scale",
 }
 
-#: ``cpu``: every schedule x factor (TrainConfig.cpu, PolarConfig.cpu_demo); ``paper``: vanilla
-#: 3DGS schedule with the paper's synthetic-data PolarGS settings (for a GPU).
+#: ``cpu``: the vanilla schedule x factor (TrainConfig.cpu), the PolarGS schedules x
+#: polar_schedule_factor(factor) (PolarConfig.cpu_demo); ``paper``: vanilla 3DGS schedule with the
+#: paper's synthetic-data PolarGS settings (for a GPU).
 PRESETS: tuple[str, ...] = ("cpu", "paper")
-DEFAULT_FACTOR = 0.02
+DEFAULT_FACTOR = CPU_FACTOR
 
 # (PC, Dense, L_n, L_dn + L_scale) per variant with hooks.
 _SWITCHES: dict[str, tuple[bool, bool, bool, bool]] = {
@@ -76,12 +79,15 @@ def polar_config(variant: str, preset: str = "cpu", factor: float | None = None,
                  overrides: dict[str, Any] | None = None):
     """The :class:`PolarConfig` of ``variant`` (None for ``base``), then ``overrides`` applied
     (``PolarConfig.update``: nested partial dict; unknown keys raise KeyError)."""
-    from polargs_plugin.config import PolarConfig
+    from polargs_plugin.config import PolarConfig, polar_schedule_factor
 
     _check(variant, preset)
     if variant == "base":
         return None
-    config = PolarConfig.cpu_demo(DEFAULT_FACTOR if factor is None else factor) if preset == "cpu" else PolarConfig.synthetic()
+    if preset == "cpu":
+        config = PolarConfig.cpu_demo(polar_schedule_factor(DEFAULT_FACTOR if factor is None else factor))
+    else:
+        config = PolarConfig.synthetic()
     pc, dense, normal, regularisers = _SWITCHES[variant]
     config.correction.enabled = pc
     config.losses.use_ref = pc
@@ -102,7 +108,7 @@ def variant_configs(variant: str, preset: str = "cpu", factor: float | None = No
     Args:
         variant: one of :data:`VARIANTS`.
         preset: ``cpu`` (schedules x ``factor``) or ``paper``.
-        factor: schedule factor of the cpu preset (default 0.02: 600 iterations).
+        factor: vanilla schedule factor of the cpu preset (default 1/6: 5000 iterations).
         seed: training seed (TrainConfig.seed and the PatchMatch seed).
         train_overrides / polar_overrides: nested partial dicts applied last.
 

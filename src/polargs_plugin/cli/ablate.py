@@ -59,14 +59,14 @@ Examples:
 
 
 
-def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "0.02: 600 iterations") -> None:
+def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "1/6: 5000 iterations") -> None:
     """Options shared by ``polargs ablate`` and ``polargs demo``."""
     p.add_argument("--jobs", type=positive_int, default=None, metavar="N",
                    help="runs in parallel (default: one per GPU when CUDA is available, see --gpus; else cores // --threads-per-run); "
                    "1 runs in this process")
     p.add_argument("--threads-per-run", type=positive_int, default=1, metavar="T", help="torch threads of each run (default 1)")
     p.add_argument("--preset", choices=PRESETS, default="cpu",
-                   help="cpu: every schedule x --factor (TrainConfig.cpu, PolarConfig.cpu_demo); paper: vanilla 3DGS "
+                   help="cpu: the vanilla schedule x --factor, PolarGS' x min(1, 3 --factor) (TrainConfig.cpu, PolarConfig.cpu_demo); paper: vanilla 3DGS "
                    "schedule with the paper's synthetic settings, for a GPU (default cpu)")
     p.add_argument("--factor", type=positive_float, default=None, metavar="F", help=f"schedule factor of the cpu preset (default {default_factor_help})")
     p.add_argument("--iters", type=positive_int, default=None, metavar="N", help="training iterations (default: the preset's)")

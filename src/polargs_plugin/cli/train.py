@@ -57,11 +57,11 @@ DATASET is a dataset folder in any supported format (detected automatically), or
 synthetic:NAME to render one of the bundled synthetic scenes on the fly (24 views, 128x128).
 
 Two independent choices:
-  --schedule cpu|paper   how long and how big the TRAINING is: cpu = every schedule x0.02 (600
-                         iterations, SH degree 1, <= 6000 Gaussians from density control, no
-                         opacity reset) for a CPU in minutes; paper = vanilla 3DGS (30k
-                         iterations, SH degree 3, no cap), for a GPU. PolarGS' own schedules
-                         (Dense window, L_dn start) are scaled with it.
+  --schedule cpu|paper   how long and how big the TRAINING is: cpu = the vanilla schedule x1/6
+                         (5000 iterations, SH degree 1, <= 6000 Gaussians from density control,
+                         no opacity reset) for a CPU in minutes, with PolarGS' own schedules x1/2
+                         (Dense 500-3500 every 50, L_dn from 3500; --factor F: x F and x min(1, 3F));
+                         paper = vanilla 3DGS (30k iterations, SH degree 3, no cap), for a GPU.
   --preset synthetic|real  the paper's PolarGS VALUES for synthetic data (lambda1 = 0.02, alpha =
                          0.2, perspective azimuth model) or for real captures (lambda1 = 0.2,
                          alpha = 0.1, orthographic).
@@ -131,12 +131,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", metavar="DATASET", help="dataset folder, or synthetic:NAME for a bundled scene")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder (see above)")
     p.add_argument("--schedule", choices=SCHEDULES, default=None,
-                   help="training schedule: cpu (600 iterations, minutes on a CPU) or paper (30k, a GPU) (default cpu)")
+                   help="training schedule: cpu (5000 iterations, minutes on a CPU) or paper (30k, a GPU) (default cpu)")
     p.add_argument("--preset", choices=PRESETS + SCHEDULES, default=None, metavar="{synthetic,real}",
                    help="PolarGS values of the paper for synthetic data or real captures (default synthetic); "
                    "the old --preset cpu|paper still selects the schedule, with a note")
     p.add_argument("--factor", type=positive_float, default=None, metavar="F",
-                   help="schedule factor of --schedule cpu (default 0.02: 600 iterations)")
+                   help="vanilla schedule factor of --schedule cpu (default 1/6: 5000 iterations; the PolarGS "
+                        "schedules get min(1, 3F): Dense 500-3500 every 50, L_dn from 3500)")
     p.add_argument("--iters", type=positive_int, default=None, metavar="N", help="number of iterations (default: the schedule's)")
     p.add_argument(
         "--polar",
@@ -370,14 +371,15 @@ def load_config_file(path: Path | None) -> tuple[dict[str, Any], dict[str, Any]]
 
 
 def polar_config(preset: str, factor: float | None, overrides: dict[str, Any], source: str, switches: dict[str, bool] | None = None):
-    """The PolarConfig of a run: the paper preset, its schedules scaled by ``factor`` (None: not
-    scaled, the paper schedule), ``overrides`` (checked), then the ablation switches."""
-    from polargs_plugin.config import PolarConfig
+    """The PolarConfig of a run: the paper preset, its schedules scaled for a vanilla schedule
+    factor ``factor`` (``polar_schedule_factor``; None: not scaled, the paper schedule),
+    ``overrides`` (checked), then the ablation switches."""
+    from polargs_plugin.config import PolarConfig, polar_schedule_factor
 
     config = PolarConfig.real() if preset == "real" else PolarConfig.synthetic()
     if factor is not None:
         # The schedule fields cpu_demo scales (whatever they are): taken from it, onto the preset.
-        scaled, plain = PolarConfig.cpu_demo(factor).to_dict(), PolarConfig.synthetic().to_dict()
+        scaled, plain = PolarConfig.cpu_demo(polar_schedule_factor(factor)).to_dict(), PolarConfig.synthetic().to_dict()
         config.update(_changed(plain, scaled))
     data = _check_merge(config.to_dict(), overrides, "polar", source)
     config = PolarConfig.from_dict(data)

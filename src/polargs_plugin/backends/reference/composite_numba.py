@@ -37,13 +37,57 @@ _TILES_PER_CHUNK = 4
 
 
 @numba.njit(inline="always")
-def _ray(ray_coeffs, ray_offsets, g, px, py):
-    a0 = ray_coeffs[g, 0] * px + ray_coeffs[g, 1] * py + ray_coeffs[g, 2]
-    a1 = ray_coeffs[g, 3] * px + ray_coeffs[g, 4] * py + ray_coeffs[g, 5]
-    a2 = ray_coeffs[g, 6] * px + ray_coeffs[g, 7] * py + ray_coeffs[g, 8]
-    aa = a0 * a0 + a1 * a1 + a2 * a2
-    t = (a0 * ray_offsets[g, 0] + a1 * ray_offsets[g, 1] + a2 * ray_offsets[g, 2]) / aa
-    return t, a0, a1, a2, aa
+def _coeffs(ray_coeffs, g):
+    """Gaussian g's 9 ray coefficients as a tuple of float64 (held in registers)."""
+    return (
+        float(ray_coeffs[g, 0]), float(ray_coeffs[g, 1]), float(ray_coeffs[g, 2]),
+        float(ray_coeffs[g, 3]), float(ray_coeffs[g, 4]), float(ray_coeffs[g, 5]),
+        float(ray_coeffs[g, 6]), float(ray_coeffs[g, 7]), float(ray_coeffs[g, 8]),
+    )
+
+
+@numba.njit(inline="always")
+def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, sigma_max):
+    """Gaussian g's values (its ray coefficients: :func:`_coeffs`) as float64 locals, read once
+    before its pixel loop: numba cannot prove that the stores into the pixel state do not alias the
+    inputs, and would reload every input at every pixel otherwise."""
+    return (
+        sigma_max[g], float(means2d[g, 0]), float(means2d[g, 1]),
+        float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opacities[g]),
+        float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2]),
+        float(normals[g, 0]), float(normals[g, 1]), float(normals[g, 2]),
+        float(ray_offsets[g, 0]), float(ray_offsets[g, 1]), float(ray_offsets[g, 2]),
+        float(depth_bounds[g, 0]), float(depth_bounds[g, 1]),
+    )
+
+
+@numba.njit(inline="always")
+def _ray(q, b0, b1, b2, px, py):
+    """Ray-Gaussian depth t = a.b / a.a at pixel centre (px, py), a = q [px, py, 1], and 1 / a.a; ``q`` the 9 ray coefficients."""
+    a0 = q[0] * px + q[1] * py + q[2]
+    a1 = q[3] * px + q[4] * py + q[5]
+    a2 = q[6] * px + q[7] * py + q[8]
+    inv_aa = 1.0 / (a0 * a0 + a1 * a1 + a2 * a2)
+    t = (a0 * b0 + a1 * b1 + a2 * b2) * inv_aa
+    return t, inv_aa
+
+
+@numba.njit(inline="always")
+def _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row):
+    """Gradients of the ray coefficients Q (3x3, row-major ``q``) and offsets b into ``row[12:24]``
+    from a pair's pixel moments.
+
+    Per pixel p = (px, py, 1), a = Q p and t = a.b / a.a, so with s = dL/dt / a.a:
+    dL/db = sum s a = Q S and dL/dQ = sum s (b - 2 t a) p^T = b S^T - 2 Q M, where S = sum s p and
+    M = sum s t p p^T (symmetric). Accumulating S and M (9 sums) instead of the 12 gradient
+    entries per pixel saves the per-pixel products with b and a."""
+    bs = (b0, b1, b2)
+    for i in range(3):
+        qx, qy, q1 = q[3 * i], q[3 * i + 1], q[3 * i + 2]
+        row[12 + 3 * i] = bs[i] * s_x - 2.0 * (qx * m_xx + qy * m_xy + q1 * m_x)
+        row[13 + 3 * i] = bs[i] * s_y - 2.0 * (qx * m_xy + qy * m_yy + q1 * m_y)
+        row[14 + 3 * i] = bs[i] * s_1 - 2.0 * (qx * m_x + qy * m_y + q1 * m_1)
+        row[21 + i] = qx * s_x + qy * s_y + q1 * s_1
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -118,22 +162,24 @@ def _forward_kernel(
             ulo, uhi, vlo, vhi = _clip_box(boxes, g, u0, v0, tile_size, width, height)
             if ulo > uhi or vlo > vhi:
                 continue
-            smax = sigma_max[g]
+            (smax, mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
+                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, sigma_max)
+            q = _coeffs(ray_coeffs, g)
             for v in range(vlo, vhi + 1):
                 if row_active[v - v0] == 0:
                     continue
                 py = v + 0.5
+                dy = py - my
                 for u in range(ulo, uhi + 1):
                     p = (v - v0) * tile_size + (u - u0)
                     if done[p]:
                         continue
                     px = u + 0.5
-                    dx = px - means2d[g, 0]
-                    dy = py - means2d[g, 1]
-                    sigma = 0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) + conics[g, 1] * dx * dy
+                    dx = px - mx
+                    sigma = 0.5 * (c0 * dx * dx + c2 * dy * dy) + c1 * dx * dy
                     if sigma > smax:
                         continue
-                    alpha = min(opacities[g] * np.exp(-sigma), ALPHA_MAX)
+                    alpha = min(opacity * np.exp(-sigma), ALPHA_MAX)
                     if alpha < ALPHA_MIN:
                         continue
                     tp = trans[p]
@@ -143,16 +189,16 @@ def _forward_kernel(
                         row_active[v - v0] -= 1
                         active -= 1
                         continue
-                    t, a0, a1, a2, aa = _ray(ray_coeffs, ray_offsets, g, px, py)
-                    z = min(max(t, depth_bounds[g, 0]), depth_bounds[g, 1])
+                    t = _ray(q, b0, b1, b2, px, py)[0]
+                    z = min(max(t, lo), hi)
                     w = alpha * tp
-                    acc[p, 0] += w * colors[g, 0]
-                    acc[p, 1] += w * colors[g, 1]
-                    acc[p, 2] += w * colors[g, 2]
+                    acc[p, 0] += w * col0
+                    acc[p, 1] += w * col1
+                    acc[p, 2] += w * col2
                     acc[p, 3] += w * z
-                    acc[p, 4] += w * normals[g, 0]
-                    acc[p, 5] += w * normals[g, 1]
-                    acc[p, 6] += w * normals[g, 2]
+                    acc[p, 4] += w * n0
+                    acc[p, 5] += w * n1
+                    acc[p, 6] += w * n2
                     if tp >= 0.5 and next_t < 0.5:
                         med_z[p] = z
                         med_j[p] = j
@@ -194,7 +240,6 @@ def _backward_kernel(
         grads = np.zeros((npix, 8), grad_color.dtype)  # colour 3, depth, normal 3, median (input dtype)
         last = np.full(npix, start, np.int64)
         med_j = np.full(npix, -1, np.int64)
-        racc = np.empty(pair_grads.shape[1])
         row_end = np.full(tile_size, start, np.int64)  # one past the last slot any pixel of the row uses
         end = start
         for v in range(v0, v0 + th):
@@ -219,87 +264,93 @@ def _backward_kernel(
             if ulo > uhi or vlo > vhi:
                 pair_grads[j, :] = 0.0
                 continue
-            smax = sigma_max[g]
-            # This pair's gradient row, summed in float64 over the pixels in row-major order and
-            # written once (each pair belongs to one tile).
-            racc[:] = 0.0
-            touched = False
+            (smax, mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
+                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, sigma_max)
+            q = _coeffs(ray_coeffs, g)
+            # This pair's gradient, summed in float64 locals (registers, not memory) over the
+            # pixels in row-major order and written once (each pair belongs to one tile).
+            d_mx = d_my = d_c0 = d_c1 = d_c2 = d_op = 0.0
+            d_col0 = d_col1 = d_col2 = d_n0 = d_n1 = d_n2 = 0.0
+            # Depth terms as moments over the pixels (see _ray_gradients): S = sum s p, M = sum s t p p^T.
+            s_x = s_y = s_1 = m_xx = m_xy = m_x = m_yy = m_y = m_1 = 0.0
+            d_lo = d_hi = 0.0
             for v in range(vlo, vhi + 1):
                 if j >= row_end[v - v0]:
                     continue
                 py = v + 0.5
+                dy = py - my
                 for u in range(ulo, uhi + 1):
                     p = (v - v0) * tile_size + (u - u0)
                     if j >= last[p]:
                         continue
                     px = u + 0.5
-                    dx = px - means2d[g, 0]
-                    dy = py - means2d[g, 1]
-                    sigma = 0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) + conics[g, 1] * dx * dy
+                    dx = px - mx
+                    sigma = 0.5 * (c0 * dx * dx + c2 * dy * dy) + c1 * dx * dy
                     if sigma > smax:
                         continue
-                    raw = opacities[g] * np.exp(-sigma)
+                    raw = opacity * np.exp(-sigma)
                     alpha = min(raw, ALPHA_MAX)
                     if alpha < ALPHA_MIN:
                         continue
-                    tp = trans[p] / (1.0 - alpha)
+                    keep = 1.0 / (1.0 - alpha)
+                    tp = trans[p] * keep
                     trans[p] = tp
-                    t, a0, a1, a2, aa = _ray(ray_coeffs, ray_offsets, g, px, py)
-                    lo, hi = depth_bounds[g, 0], depth_bounds[g, 1]
-                    z = min(max(t, lo), hi)
                     gc0, gc1, gc2, gd = grads[p, 0], grads[p, 1], grads[p, 2], grads[p, 3]
                     gn0, gn1, gn2 = grads[p, 4], grads[p, 5], grads[p, 6]
-                    fg = (
-                        colors[g, 0] * gc0 + colors[g, 1] * gc1 + colors[g, 2] * gc2
-                        + normals[g, 0] * gn0 + normals[g, 1] * gn1 + normals[g, 2] * gn2 + z * gd
-                    )
-                    touched = True
+                    fg = col0 * gc0 + col1 * gc1 + col2 * gc2 + n0 * gn0 + n1 * gn1 + n2 * gn2
+                    # The depth terms only where the pixel's depth or median depth has a gradient
+                    # (never in a colour-only loss): skipping them adds nothing but zeros.
+                    geometric = gd != 0.0 or j == med_j[p]
+                    if geometric:
+                        t, inv_aa = _ray(q, b0, b1, b2, px, py)
+                        z = min(max(t, lo), hi)
+                        fg += z * gd
                     w = alpha * tp
                     rp = rest[p]
-                    d_alpha = tp * fg - rp / (1.0 - alpha)
+                    d_alpha = tp * fg - rp * keep
                     rest[p] = rp + w * fg
 
-                    racc[6] += w * gc0
-                    racc[7] += w * gc1
-                    racc[8] += w * gc2
-                    racc[9] += w * gn0
-                    racc[10] += w * gn1
-                    racc[11] += w * gn2
-                    dz = w * gd
-                    if j == med_j[p]:
-                        dz += grads[p, 7]
-                    if t < lo:
-                        racc[24] += dz
-                    elif t > hi:
-                        racc[25] += dz
-                    else:
-                        b0, b1, b2 = ray_offsets[g, 0], ray_offsets[g, 1], ray_offsets[g, 2]
-                        s = dz / aa
-                        da0 = s * (b0 - 2.0 * t * a0)
-                        da1 = s * (b1 - 2.0 * t * a1)
-                        da2 = s * (b2 - 2.0 * t * a2)
-                        racc[12] += da0 * px
-                        racc[13] += da0 * py
-                        racc[14] += da0
-                        racc[15] += da1 * px
-                        racc[16] += da1 * py
-                        racc[17] += da1
-                        racc[18] += da2 * px
-                        racc[19] += da2 * py
-                        racc[20] += da2
-                        racc[21] += s * a0
-                        racc[22] += s * a1
-                        racc[23] += s * a2
+                    d_col0 += w * gc0
+                    d_col1 += w * gc1
+                    d_col2 += w * gc2
+                    d_n0 += w * gn0
+                    d_n1 += w * gn1
+                    d_n2 += w * gn2
+                    if geometric:
+                        dz = w * gd
+                        if j == med_j[p]:
+                            dz += grads[p, 7]
+                        if t < lo:
+                            d_lo += dz
+                        elif t > hi:
+                            d_hi += dz
+                        else:
+                            s = dz * inv_aa
+                            s_x += s * px
+                            s_y += s * py
+                            s_1 += s
+                            st = s * t
+                            stx = st * px
+                            m_xx += stx * px
+                            m_xy += stx * py
+                            m_x += stx
+                            sty = st * py
+                            m_yy += sty * py
+                            m_y += sty
+                            m_1 += st
                     if raw <= ALPHA_MAX:
-                        racc[5] += d_alpha * (alpha / opacities[g])
+                        d_op += d_alpha * (alpha / opacity)
                         d_sigma = -d_alpha * alpha
-                        racc[2] += d_sigma * 0.5 * dx * dx
-                        racc[3] += d_sigma * dx * dy
-                        racc[4] += d_sigma * 0.5 * dy * dy
-                        racc[0] -= d_sigma * (conics[g, 0] * dx + conics[g, 1] * dy)
-                        racc[1] -= d_sigma * (conics[g, 1] * dx + conics[g, 2] * dy)
-            for c in range(racc.shape[0]):
-                pair_grads[j, c] = racc[c] if touched else 0.0
+                        d_c0 += d_sigma * 0.5 * dx * dx
+                        d_c1 += d_sigma * dx * dy
+                        d_c2 += d_sigma * 0.5 * dy * dy
+                        d_mx -= d_sigma * (c0 * dx + c1 * dy)
+                        d_my -= d_sigma * (c1 * dx + c2 * dy)
+            row = pair_grads[j]
+            row[0], row[1], row[2], row[3], row[4], row[5] = d_mx, d_my, d_c0, d_c1, d_c2, d_op
+            row[6], row[7], row[8], row[9], row[10], row[11] = d_col0, d_col1, d_col2, d_n0, d_n1, d_n2
+            _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row)
+            row[24], row[25] = d_lo, d_hi
 
 
 @numba.njit(cache=True)

@@ -142,6 +142,7 @@ class GaussianModel(nn.Module):
             ],
             lr=0.0,
             eps=1e-15,
+            fused=True,  # one kernel for all groups (CPU and CUDA): ~2.5x cheaper than the per-tensor loop
         )
 
     # ----------------------------------------------------------------- construction
@@ -214,16 +215,21 @@ class GaussianModel(nn.Module):
         """Activated, autograd-connected view of the Gaussians for the hooks."""
         return GaussianState(means=self.means, quats=self.rotations, scales=self.scales, opacities=self.opacities)
 
-    def render(self, view: View, background: Tensor | None = None, **kwargs) -> RenderOut:
-        """Render ``view`` with the reference rasterizer (extra ``kwargs`` go to ``rasterize``)."""
+    def render(self, view: View, background: Tensor | None = None, state: GaussianState | None = None,
+               **kwargs) -> RenderOut:
+        """Render ``view`` with the reference rasterizer (extra ``kwargs`` go to ``rasterize``).
+
+        ``state``: this model's :meth:`state`, when the caller already has it (the trainer passes
+        the one it hands to the hooks, so the activations are computed and differentiated once)."""
         from polargs_plugin.backends.reference.rasterizer import rasterize
 
         device = self.means.device
+        state = self.state() if state is None else state
         return rasterize(
-            self.means,
-            self.rotations,
-            self.scales,
-            self.opacities,
+            state.means,
+            state.quats,
+            state.scales,
+            state.opacities,
             self.sh,
             view.K.to(device=device, dtype=torch.float32),
             view.world_to_camera.to(device=device, dtype=torch.float32),

@@ -45,10 +45,11 @@ from polargs_plugin.backends.reference.model import (
     scene_extent,
 )
 from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
+from polargs_plugin.config import CPU_FACTOR
 from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import photometric_loss
 from polargs_plugin.threads import ThreadPolicy
-from polargs_plugin.types import RenderOut, TrainingHooks, View, validate_view
+from polargs_plugin.types import GaussianState, RenderOut, TrainingHooks, View, validate_view
 
 __all__ = ["TrainConfig", "Trainer", "TrainingHooks", "TrainingDiverged", "StepLogs", "CHECKPOINT_FORMAT"]
 
@@ -101,11 +102,16 @@ class TrainConfig:
         return dataclasses.replace(cls(), **overrides)
 
     @classmethod
-    def cpu(cls, factor: float = 0.02, **overrides: Any) -> "TrainConfig":
-        """Every schedule multiplied by ``factor`` (default: 600 iterations, refinement every 2
-        from 10 to 300) for a CPU run of minutes at 128x128: SH degree 1, 2000 initial points,
-        at most 6000 Gaussians from vanilla density control (Dense's appends come on top, see
-        :class:`DensityConfig`) and no opacity reset."""
+    def cpu(cls, factor: float = CPU_FACTOR, **overrides: Any) -> "TrainConfig":
+        """Every schedule multiplied by ``factor`` for a CPU run at 128x128: SH degree 1, 2000
+        initial points, at most 6000 Gaussians from vanilla density control (Dense's appends come
+        on top, see :class:`DensityConfig`) and no opacity reset.
+
+        The default ``polargs_plugin.config.CPU_FACTOR`` = 1/6 is the CPU preset: 5000 iterations, refinement every
+        17 from 83 to 2500, SH degree +1 every 167, position learning-rate decay over 5000; with
+        ``PolarConfig.cpu_demo()`` (the PolarGS schedules at 1/2: Dense 500-3500 every 50, L_dn
+        from 3500; ``polargs_plugin.config.polar_schedule_factor``). docs/speed.md "CPU preset"
+        gives the reasons and the wall times."""
         cfg = cls(
             iterations=round(30_000 * factor),
             schedule_scale=factor,
@@ -205,9 +211,10 @@ class Trainer:
             image = image * m + self.background.reshape(3, 1, 1) * (1 - m)
         return image.contiguous()
 
-    def render(self, view: View) -> RenderOut:
-        """Render ``view`` with the trainer's background; colour clamped to [0, 1] (as vanilla)."""
-        out = self.model.render(view, background=self.background, backend=self.config.backend)
+    def render(self, view: View, state: GaussianState | None = None) -> RenderOut:
+        """Render ``view`` with the trainer's background; colour clamped to [0, 1] (as vanilla).
+        ``state``: the model's current :meth:`GaussianModel.state`, if already computed."""
+        out = self.model.render(view, background=self.background, state=state, backend=self.config.backend)
         return dataclasses.replace(out, color=out.color.clamp(0, 1))
 
     def _prepare(self) -> None:
@@ -243,11 +250,13 @@ class Trainer:
         index = self._next_view()
         view, target = self.views[index], self.targets[index]
 
-        render = self.render(view)
+        # The hooks get the activations the render used (one set of activation nodes to differentiate).
+        state = model.state() if self.hooks is not None else None
+        render = self.render(view, state)
         loss = self.base_loss(render.color, target)
         values: dict[str, Any] = {}
         if self.hooks is not None:
-            extra, hook_logs = self.hooks.loss(it, view, render, model.state())
+            extra, hook_logs = self.hooks.loss(it, view, render, state)
             loss = loss + extra
             # detached, so that the logs do not keep the step's autograd graph alive
             values.update({k: v.detach() if isinstance(v, Tensor) else v for k, v in (hook_logs or {}).items()})
@@ -452,6 +461,11 @@ class StepLogs(Mapping):
 
 
 def _check_finite_parameters(model: GaussianModel, where: str) -> None:
+    # A sum is non-finite if any element is (or on overflow, which the exact count below then
+    # clears): one small reduction per parameter and one host sync, instead of six masks.
+    sums = torch.stack([getattr(model, name).detach().sum() for name in PARAM_NAMES])
+    if bool(torch.isfinite(sums).all()):
+        return
     bad = {name: int((~torch.isfinite(getattr(model, name))).sum()) for name in PARAM_NAMES}
     named = [f"'{name}' has {count} of {getattr(model, name).numel()}" for name, count in bad.items() if count]
     if named:
