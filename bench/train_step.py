@@ -423,7 +423,8 @@ def _measure_groups(args) -> tuple[list[dict], dict]:
     """Every group of GROUPS in a worker of its own, ``--rounds`` times in turn (with the package
     before issue 9 first in each round), then one Dense worker. Returns the reference runs and, per
     part, the mean wall / CPU time and the median over the rounds, plus the workers' details."""
-    old, runs, details = [], {}, {}
+    old, runs, num_gaussians, rss = [], {}, {}, []
+    threads = torch_projection = None
     for _ in range(args.rounds):
         if args.reference_src:
             old += _run_workers(args, "old", 1)
@@ -431,18 +432,15 @@ def _measure_groups(args) -> tuple[list[dict], dict]:
             out = _run_workers(args, "measure", 1, ["--group", str(index)])[0]
             for name in group:
                 runs.setdefault(name, []).append(out[name])
-            details.setdefault("num_gaussians", {}).update(out["num_gaussians"])
-            details.setdefault("rss", []).append(out["peak_rss_mib"])
-            details["threads"] = out["threads"]
-            details.setdefault("reference_torch_projection", out.get("reference_torch_projection"))
-            if "reference_torch_projection" in out:
-                details["reference_torch_projection"] = out["reference_torch_projection"]
+            num_gaussians.update(out["num_gaussians"])
+            rss.append(out["peak_rss_mib"])
+            threads = out["threads"]
+            torch_projection = out.get("reference_torch_projection", torch_projection)
     dense = _run_workers(args, "measure", 1, ["--group", "dense"])[0]
     m = {name: {key: statistics.fmean(r[key] for r in rs) for key in ("wall", "cpu", "median")}
          for name, rs in runs.items()}
-    m.update(dense=dense["dense"], threads=details["threads"], num_gaussians=details["num_gaussians"],
-             reference_torch_projection=details["reference_torch_projection"],
-             peak_rss_mib=max(details["rss"] + [dense["peak_rss_mib"]]))
+    m.update(dense=dense["dense"], threads=threads, num_gaussians=num_gaussians,
+             reference_torch_projection=torch_projection, peak_rss_mib=max(rss + [dense["peak_rss_mib"]]))
     return old, m
 
 
