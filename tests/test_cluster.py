@@ -32,6 +32,7 @@ from polargs_plugin.ablation.executors import (
 )
 from polargs_plugin.ablation.grid import _init_worker
 from polargs_plugin.cli import main
+from polargs_plugin.cli.train import CHECKPOINT_NAME
 
 SCENE = "glossy_plane_sphere"
 TINY = ["--views", "6", "--size", "32x32", "--factor", "0.002", "--eval-samples", "20000",
@@ -162,11 +163,13 @@ def test_preempted_local_job_resumes_to_the_same_figures(debug_grid, tmp_path, c
 
     submitted = submit_grid([cell], SubmititOptions(cluster="local", timeout_min=60))
     (_, job), = submitted.submitted
-    state = cell.partial_dir / "state.json"
+    # state.json is written before the checkpoint (atomically renamed into place): wait for the
+    # checkpoint, else the preemption can land between the two and the next attempt starts over
+    checkpoint = cell.partial_dir / CHECKPOINT_NAME
     deadline = time.time() + 120
-    while not state.is_file() and time.time() < deadline and not job.done():
+    while not checkpoint.is_file() and time.time() < deadline and not job.done():
         time.sleep(0.05)
-    assert state.is_file(), job.stderr()
+    assert checkpoint.is_file(), job.stderr()
     # Frozen right after its first checkpoint, so that it cannot finish before the preemption below.
     task_pid, = {int(p.name.rsplit("-", 1)[1]) for p in Path(cell.out).glob(f".tmp-{cell.name}-*")}
     os.kill(task_pid, signal.SIGSTOP)
