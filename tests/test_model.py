@@ -245,12 +245,14 @@ def test_visual_hull_points_lie_near_the_sphere():
     pts, cols = init_points_from_masks(views, 2000, resolution=48, generator=torch.Generator().manual_seed(0))
     assert pts.shape == (2000, 3) and cols.shape == (2000, 3)
     dist = pts.double().norm(dim=1)
-    # boundary voxels of the hull of a sphere seen from 24 views: at most two voxel diagonals
-    # inside (voxel = 2 * 3 * (48 / 60) / 2 / 48 = 0.05), and a few percent outside
-    voxel = 0.05
-    assert float(dist.min()) > r - 2 * math.sqrt(3) * voxel and float(dist.max()) < r * 1.25
-    assert float((dist - r).abs().median()) < 0.05
-    # mean image colour at the projections: 0.6 inside the masks (jitter may leave a mask edge)
-    assert float(cols.median()) == pytest.approx(0.6, abs=1e-5) and float(cols.max()) <= 0.6 + 1e-6
+    # on the hull's boundary, not inside its boundary voxels (voxel = 2 * 3 * (48 / 60) / 2 / 48
+    # = 0.05, which put the samples 0.025 inside on average): the hull of the pixel-centre masks
+    # of a sphere is the sphere to within about half a pixel's footprint (3 / 60 / 2 = 0.025),
+    # and the samples are unbiased to a fifth of that
+    half_pixel = 3 / 60 / 2
+    assert float(dist.min()) > r - half_pixel and float(dist.max()) < r + 1.2 * half_pixel
+    assert abs(float((dist - r).median())) < 0.2 * half_pixel
+    # mean image colour at the projections: every sample projects inside every mask (0.6)
+    assert float(cols.min()) == pytest.approx(0.6, abs=1e-6) and float(cols.max()) <= 0.6 + 1e-6
     extent = scene_extent(views)
     assert extent == pytest.approx(3.0 * 1.1, rel=0.1)  # cameras on a sphere of radius 3 around their centroid
