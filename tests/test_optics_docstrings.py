@@ -6,6 +6,7 @@ import pytest
 
 import polargs_plugin.config
 import polargs_plugin.depth_normal
+import polargs_plugin.reflective_window
 import polargs_plugin.optics.azimuth
 import polargs_plugin.optics.fresnel
 import polargs_plugin.optics.mosaic
@@ -20,7 +21,7 @@ MODULES = [
     polargs_plugin.viz,
 ]
 # Modules whose examples run too, without an example required of every public name.
-ALSO_RUN = [polargs_plugin.config, polargs_plugin.depth_normal]
+ALSO_RUN = [polargs_plugin.config, polargs_plugin.depth_normal, polargs_plugin.reflective_window]
 EXAMPLES = [test for module in MODULES + ALSO_RUN for test in doctest.DocTestFinder().find(module) if test.examples]
 
 

@@ -18,7 +18,9 @@ import torch
 from torch import Tensor
 
 from polargs_plugin.depth_normal import depth_normal_loss_fused
+from polargs_plugin.reflective_window import reflective_window_losses
 from polargs_plugin.ssim import gaussian_kernel1d, ssim_from_moments, ssim_map
+from polargs_plugin.threads import numba_path
 
 __all__ = [
     "photometric_loss_map",
@@ -243,6 +245,9 @@ class ReflectiveTargets:
     def _losses(self, pred: Tensor, ssim_weight: float) -> Tensor:
         """(2, ...) photometric loss of ``pred`` against the corrected and plain targets, at the
         reflective pixels (*pixels*) or over the box (*box*)."""
+        if self.strategy == "pixels" and numba_path(pred) and pred.dtype == self.targets.dtype:
+            return reflective_window_losses(pred, self.windows, self.pixels, self.weights, self.targets,
+                                            self.values, self.target_mean, self.target_sq, ssim_weight)
         if self.strategy == "pixels":
             flat = pred.reshape(pred.shape[0], -1)
             pred, values = flat[:, self.windows], flat[:, self.pixels]  # (C, P, k*k), (C, P)
@@ -403,8 +408,7 @@ def depth_normal_loss(depth: Tensor, normal: Tensor, alpha: Tensor, K: Tensor) -
         runs (same value, hand-written backward, once differentiable); elsewhere (CUDA, under
         ``torch.func`` transforms or tracing) these torch operations with autograd.
     """
-    fused = depth.device.type == "cpu" and depth.dtype in (torch.float32, torch.float64) and min(depth.shape[-2:]) >= 3
-    if fused and not (torch.jit.is_tracing() or torch._C._are_functorch_transforms_active()):
+    if numba_path(depth) and min(depth.shape[-2:]) >= 3:
         return depth_normal_loss_fused(depth, normal.to(depth.dtype), alpha, K)
     return _depth_normal_loss_torch(depth, normal, alpha, K)
 

@@ -33,6 +33,8 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from polargs_plugin.threads import numba_path, numba_threads
+
 __all__ = [
     "C1",
     "C2",
@@ -271,9 +273,10 @@ def _backward_kernel(x, y, grad, coef, weights, grad_x, grad_y, want_x, want_y):
 
 @contextlib.contextmanager
 def _scheduling() -> Iterator[None]:
-    """As many Numba threads as torch uses (one per pytest-xdist worker, say)."""
+    """Numba threads as the thread policy says (:func:`polargs_plugin.threads.numba_threads`: never
+    more than torch uses, one per pytest-xdist worker, say)."""
     previous = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(numba_threads())
     try:
         yield
     finally:
@@ -353,8 +356,7 @@ def ssim_map(img1: Tensor, img2: Tensor, window_size: int = 11) -> Tensor:
     x = img1.to(dtype).reshape(-1, height, width)
     y = img2.to(dtype).reshape(-1, height, width)
     kernel = gaussian_kernel1d(window_size, SIGMA, device=x.device, dtype=dtype)
-    compiled = not (torch.jit.is_tracing() or torch._C._are_functorch_transforms_active())
-    if x.device.type == "cpu" and x.numel() > 0 and compiled:
+    if numba_path(x) and x.numel() > 0:
         out = _FusedSSIM.apply(x, y, kernel)
     else:
         out = _ssim_torch(x, y, kernel)

@@ -35,7 +35,7 @@ import sys
 from dataclasses import asdict, dataclass, field
 from typing import Any, MutableMapping
 
-__all__ = ["ThreadPolicy", "AppliedPolicy", "available_cores", "numba_threads", "current_policy"]
+__all__ = ["ThreadPolicy", "AppliedPolicy", "available_cores", "numba_threads", "current_policy", "numba_path"]
 
 _LAYERS = ("workqueue", "omp", "tbb", "default")
 _WAIT_POLICIES = ("passive", "active")
@@ -222,3 +222,14 @@ def numba_threads() -> int:
     if _applied is not None:
         count = min(count, _applied.numba_threads)
     return max(1, min(count, int(numba.config.NUMBA_NUM_THREADS)))
+
+
+def numba_path(tensor) -> bool:
+    """Whether a compiled CPU kernel (numba, with a hand-written backward) may serve ``tensor``:
+    a CPU float32 / float64 tensor, outside tracing and ``torch.func`` transforms (they need the
+    torch operations, whose graph they can follow). The losses and SSIM take their torch path
+    otherwise (CUDA, other dtypes)."""
+    import torch
+
+    return (tensor.device.type == "cpu" and tensor.dtype in (torch.float32, torch.float64)
+            and not (torch.jit.is_tracing() or torch._C._are_functorch_transforms_active()))

@@ -8,7 +8,7 @@ are skipped). Each pixel sees its Gaussians in list order with the same arithmet
 pixel-by-pixel walk, so the sums are bit for bit those of a pixel-major loop. The backward walks
 the same list back to front from each pixel's final transmittance (T_i = T_{i+1} / (1 - alpha_i),
 alpha <= 0.99 keeps this stable) and sums each (tile, Gaussian) pair's gradient over its pixels
-(row-major, in float64) into its own row, so threads never share a row; a serial kernel then
+(row by row, in float64) into its own row, so threads never share a row; a serial kernel then
 sums the rows per Gaussian. Gradients match the torch path (tests/).
 """
 from __future__ import annotations
@@ -62,11 +62,26 @@ def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth
 
 
 @numba.njit(inline="always")
-def _ray(q, b0, b1, b2, px, py):
-    """Ray-Gaussian depth t = a.b / a.a at pixel centre (px, py), a = q [px, py, 1], and 1 / a.a; ``q`` the 9 ray coefficients."""
-    a0 = q[0] * px + q[1] * py + q[2]
-    a1 = q[3] * px + q[4] * py + q[5]
-    a2 = q[6] * px + q[7] * py + q[8]
+def _row(c1, c2, q, py, dy):
+    """The parts of a pixel's sigma and ray that are constant along pixel row ``py``:
+    (c1 dy, c2 dy^2 / 2, and the three ray components' q_i1 py + q_i2), so that the pixel loop
+    does the x-dependent half only. Forward and backward use the same expressions (same alpha)."""
+    return c1 * dy, 0.5 * c2 * dy * dy, q[1] * py + q[2], q[4] * py + q[5], q[7] * py + q[8]
+
+
+@numba.njit(inline="always")
+def _sigma(c0, k1, k0, dx):
+    """sigma = d^T C d / 2 at offset (dx, dy) from the row's constants (:func:`_row`)."""
+    return (0.5 * c0 * dx + k1) * dx + k0
+
+
+@numba.njit(inline="always")
+def _ray(q, e0, e1, e2, b0, b1, b2, px):
+    """Ray-Gaussian depth t = a.b / a.a at pixel centre (px, py), a = Q [px, py, 1] (``q`` the
+    9 ray coefficients, row-major; ``e`` the row's constants, :func:`_row`), and 1 / a.a."""
+    a0 = q[0] * px + e0
+    a1 = q[3] * px + e1
+    a2 = q[6] * px + e2
     inv_aa = 1.0 / (a0 * a0 + a1 * a1 + a2 * a2)
     t = (a0 * b0 + a1 * b1 + a2 * b2) * inv_aa
     return t, inv_aa
@@ -170,13 +185,14 @@ def _forward_kernel(
                     continue
                 py = v + 0.5
                 dy = py - my
+                k1, k0, e0, e1, e2 = _row(c1, c2, q, py, dy)
                 for u in range(ulo, uhi + 1):
                     p = (v - v0) * tile_size + (u - u0)
                     if done[p]:
                         continue
                     px = u + 0.5
                     dx = px - mx
-                    sigma = 0.5 * (c0 * dx * dx + c2 * dy * dy) + c1 * dx * dy
+                    sigma = _sigma(c0, k1, k0, dx)
                     if sigma > smax:
                         continue
                     alpha = min(opacity * np.exp(-sigma), ALPHA_MAX)
@@ -189,7 +205,7 @@ def _forward_kernel(
                         row_active[v - v0] -= 1
                         active -= 1
                         continue
-                    t = _ray(q, b0, b1, b2, px, py)[0]
+                    t = _ray(q, e0, e1, e2, b0, b1, b2, px)[0]
                     z = min(max(t, lo), hi)
                     w = alpha * tp
                     acc[p, 0] += w * col0
@@ -279,16 +295,23 @@ def _backward_kernel(
                     continue
                 py = v + 0.5
                 dy = py - my
+                k1, k0, e0, e1, e2 = _row(c1, c2, q, py, dy)
+                # The row's sums over its pixels; what multiplies them is constant along the row
+                # (dy, py), so it is applied once at the row's end: d_sigma sums for the conic and
+                # the mean, s and s t sums for the ray moments.
+                r_ds = r_dsx = r_dsxx = 0.0
+                r_s = r_sx = r_st = r_stx = r_stxx = 0.0
                 for u in range(ulo, uhi + 1):
                     p = (v - v0) * tile_size + (u - u0)
                     if j >= last[p]:
                         continue
                     px = u + 0.5
                     dx = px - mx
-                    sigma = 0.5 * (c0 * dx * dx + c2 * dy * dy) + c1 * dx * dy
+                    sigma = _sigma(c0, k1, k0, dx)
                     if sigma > smax:
                         continue
-                    raw = opacity * np.exp(-sigma)
+                    falloff = np.exp(-sigma)
+                    raw = opacity * falloff
                     alpha = min(raw, ALPHA_MAX)
                     if alpha < ALPHA_MIN:
                         continue
@@ -300,9 +323,10 @@ def _backward_kernel(
                     fg = col0 * gc0 + col1 * gc1 + col2 * gc2 + n0 * gn0 + n1 * gn1 + n2 * gn2
                     # The depth terms only where the pixel's depth or median depth has a gradient
                     # (never in a colour-only loss): skipping them adds nothing but zeros.
-                    geometric = gd != 0.0 or j == med_j[p]
+                    median_here = j == med_j[p]
+                    geometric = gd != 0.0 or median_here
                     if geometric:
-                        t, inv_aa = _ray(q, b0, b1, b2, px, py)
+                        t, inv_aa = _ray(q, e0, e1, e2, b0, b1, b2, px)
                         z = min(max(t, lo), hi)
                         fg += z * gd
                     w = alpha * tp
@@ -318,7 +342,7 @@ def _backward_kernel(
                     d_n2 += w * gn2
                     if geometric:
                         dz = w * gd
-                        if j == med_j[p]:
+                        if median_here:
                             dz += grads[p, 7]
                         if t < lo:
                             d_lo += dz
@@ -326,26 +350,36 @@ def _backward_kernel(
                             d_hi += dz
                         else:
                             s = dz * inv_aa
-                            s_x += s * px
-                            s_y += s * py
-                            s_1 += s
+                            r_s += s
+                            r_sx += s * px
                             st = s * t
+                            r_st += st
                             stx = st * px
-                            m_xx += stx * px
-                            m_xy += stx * py
-                            m_x += stx
-                            sty = st * py
-                            m_yy += sty * py
-                            m_y += sty
-                            m_1 += st
+                            r_stx += stx
+                            r_stxx += stx * px
                     if raw <= ALPHA_MAX:
-                        d_op += d_alpha * (alpha / opacity)
+                        d_op += d_alpha * falloff  # alpha / opacity, unclamped here
                         d_sigma = -d_alpha * alpha
-                        d_c0 += d_sigma * 0.5 * dx * dx
-                        d_c1 += d_sigma * dx * dy
-                        d_c2 += d_sigma * 0.5 * dy * dy
-                        d_mx -= d_sigma * (c0 * dx + c1 * dy)
-                        d_my -= d_sigma * (c1 * dx + c2 * dy)
+                        r_ds += d_sigma
+                        dsx = d_sigma * dx
+                        r_dsx += dsx
+                        r_dsxx += dsx * dx
+                # sigma = c0 dx^2 / 2 + c1 dx dy + c2 dy^2 / 2; d sigma / d mean = -C d
+                d_c0 += 0.5 * r_dsxx
+                d_c1 += dy * r_dsx
+                d_c2 += 0.5 * dy * dy * r_ds
+                d_mx -= c0 * r_dsx + c1 * dy * r_ds
+                d_my -= c1 * r_dsx + c2 * dy * r_ds
+                # S = sum s p and M = sum s t p p^T with p = (px, py, 1)
+                s_x += r_sx
+                s_y += py * r_s
+                s_1 += r_s
+                m_xx += r_stxx
+                m_xy += py * r_stx
+                m_x += r_stx
+                m_yy += py * py * r_st
+                m_y += py * r_st
+                m_1 += r_st
             row = pair_grads[j]
             row[0], row[1], row[2], row[3], row[4], row[5] = d_mx, d_my, d_c0, d_c1, d_c2, d_op
             row[6], row[7], row[8], row[9], row[10], row[11] = d_col0, d_col1, d_col2, d_n0, d_n1, d_n2
