@@ -37,6 +37,7 @@ def _config() -> PolarConfig:
     cfg.densify.filters.max_relative_depth = 0.05
     cfg.densify.filters.max_reprojection_px = 2.0
     cfg.densify.filters.min_consistent_views = 1
+    cfg.densify.seed_max_plane_deviation = None
     return cfg
 
 

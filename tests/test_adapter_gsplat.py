@@ -155,6 +155,7 @@ def _hooks(views: list[View]) -> PolarHooks:
     d.filters.min_consistent_views = 1
     d.filters.max_relative_depth = 0.05
     d.filters.max_reprojection_px = 2.0
+    d.seed_max_plane_deviation = None
     cfg.losses.depth_normal_from_iter = 20
     hooks = PolarHooks(cfg)
     hooks.preprocess(views)

@@ -1,9 +1,11 @@
 """Seeded Gaussians lie on the analytic surface with the normal as their shortest axis."""
 
+import math
+
 import pytest
 import torch
 
-from polargs_plugin.densify.seeding import frames_from_normals, seed_gaussians, seed_mask
+from polargs_plugin.densify.seeding import frames_from_normals, plane_deviation, seed_gaussians, seed_mask
 from test_patchmatch_scenes import make_scene
 
 
@@ -71,3 +73,48 @@ def test_seed_mask_selects_holes_and_wrong_surfaces_only():
     alpha[0, 3, 3] = 0.0  # a hole, but filtered out
     sel = seed_mask(keep, depth, rendered, alpha, alpha_threshold=0.5, relative_depth=0.02)
     assert sel.sum() == 2 and sel[0, 0, 0] and sel[0, 1, 1]
+
+
+def _plane_view(size=12, f=20.0):
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]])
+    rays = torch.einsum("ij,jhw->ihw", torch.linalg.inv(K), torch.stack(torch.meshgrid(
+        torch.arange(size) + 0.5, torch.arange(size) + 0.5, indexing="xy") + (torch.ones(size, size),)))
+    return K, rays
+
+
+def test_plane_deviation_is_zero_on_a_tilted_plane_and_large_at_an_occlusion_edge():
+    """A plane steeply tilted (70 degrees) at a coarse resolution keeps every neighbour on the
+    pixel's plane (deviation at float rounding), which a depth-range test would not; a second
+    surface behind it gives the depth gap's share of the depth at the pixels beside the edge."""
+    K, rays = _plane_view()
+    n = torch.tensor([0.0, math.sin(math.radians(70)), -math.cos(math.radians(70))])  # facing the camera
+    d_plane = 2.0  # n . X = -2
+    depth = (-d_plane / torch.einsum("c,chw->hw", n, rays))[None]
+    assert float((depth.max() - depth.min()) / depth.min()) > 0.5  # depth varies a lot across the image
+    normal = n.view(3, 1, 1).expand(3, 12, 12)
+    dev = plane_deviation(depth, normal, K)
+    assert float(dev.max()) < 1e-5
+    stepped = depth.clone()
+    stepped[..., 6:] *= 1.5  # the right half is a surface 50 % farther
+    dev = plane_deviation(stepped, normal, K)
+    assert float(dev[..., 5].min()) > 0.4 and float(dev[..., :4].max()) < 1e-5 and float(dev[..., 7:].max()) < 1e-5
+    holes = depth.clone()
+    holes[..., 3, 3] = 0  # no depth: 0 there, and ignored as a neighbour
+    dev = plane_deviation(holes, normal, K)
+    assert dev[0, 3, 3] == 0 and float(dev.max()) < 1e-5
+
+
+def test_seed_mask_skips_occlusion_edges():
+    """A hole straddling an occlusion edge (fronto-parallel surfaces at 2.0 and 3.0): the pixels
+    next to the edge are not seeded, the ones inside either surface are."""
+    K, _ = _plane_view(size=8)
+    depth = torch.full((1, 8, 8), 2.0)
+    depth[..., 4:] = 3.0
+    normal = torch.tensor([0.0, 0.0, -1.0]).view(3, 1, 1).expand(3, 8, 8)
+    keep = torch.ones(1, 8, 8, dtype=torch.bool)
+    alpha = torch.zeros(1, 8, 8)  # a hole everywhere
+    sel = seed_mask(keep, depth, torch.zeros_like(depth), alpha, normal=normal, K=K, max_plane_deviation=0.04)
+    assert not sel[..., 3:5].any() and sel[..., :3].all() and sel[..., 5:].all()
+    assert seed_mask(keep, depth, torch.zeros_like(depth), alpha).all()  # no planarity test
+    with pytest.raises(ValueError, match="normal"):
+        seed_mask(keep, depth, torch.zeros_like(depth), alpha, max_plane_deviation=0.04)

@@ -158,6 +158,7 @@ class DensifyConfig:
     initial_opacity: float = 0.5
     alpha_threshold: float = 0.5
     seed_relative_depth: float = 0.02
+    seed_max_plane_deviation: float | None = 0.04
     thin_scale_ratio: float = 0.1
     use_view_mask: bool = True
     patchmatch: PatchMatchConfig = field(default_factory=PatchMatchConfig)

@@ -18,27 +18,70 @@ from torch import Tensor
 from polargs_plugin.densify.homography import pixel_rays
 from polargs_plugin.types import NewGaussians
 
-__all__ = ["seed_mask", "frames_from_normals", "seed_gaussians"]
+__all__ = ["seed_mask", "plane_deviation", "frames_from_normals", "seed_gaussians"]
 
 
 def seed_mask(
     keep: Tensor, depth: Tensor, rendered_depth: Tensor, rendered_alpha: Tensor, *,
     alpha_threshold: float = 0.5, relative_depth: float = 0.02,
+    normal: Tensor | None = None, K: Tensor | None = None, max_plane_deviation: float | None = None,
 ) -> Tensor:
-    """Filtered pixels where the render has a hole or a wrong surface.
+    """Filtered pixels where the render has a hole or a wrong surface, on a locally planar depth.
 
     Args:
         keep: (1, H, W) bool pixels that passed the filters; depth: (1, H, W) PatchMatch depth.
         rendered_depth, rendered_alpha: (1, H, W) from the current model.
         alpha_threshold: below it the render counts as a hole.
         relative_depth: |rendered - PatchMatch| / PatchMatch above it counts as a wrong surface.
+        normal, K: (3, H, W) PatchMatch normal and (3, 3) intrinsics, for the planarity test.
+        max_plane_deviation: seeds only where the 3x3 neighbours' PatchMatch depths stay within
+            this fraction of the depth of the pixel's own plane (:func:`plane_deviation`); None =
+            no such test. PatchMatch's patches straddle occlusion edges there and its depth lands
+            between the surfaces; the multi-view filters, which compare against the renders, let
+            such pixels through (docs/patchmatch.md "Seeding").
 
     Returns:
         (1, H, W) bool.
     """
     hole = rendered_alpha < alpha_threshold
     wrong = (rendered_depth - depth).abs() > relative_depth * depth
-    return keep & (depth > 0) & (hole | wrong)
+    seeds = keep & (depth > 0) & (hole | wrong)
+    if max_plane_deviation is not None:
+        if normal is None or K is None:
+            raise ValueError("seed_mask: max_plane_deviation needs the PatchMatch normal and K")
+        seeds &= plane_deviation(depth, normal, K) <= max_plane_deviation
+    return seeds
+
+
+def plane_deviation(depth: Tensor, normal: Tensor, K: Tensor) -> Tensor:
+    """(1, H, W) how far the 3x3 neighbours' depths leave each pixel's own plane: the largest
+    |D_q - z_q| / D_p over the neighbours q with a depth, where z_q is the depth at which q's ray
+    meets the plane through the pixel's point with the pixel's normal (0 where the pixel has no
+    depth; inf where a neighbour's ray is parallel to the plane; NaN for a zero normal).
+
+    A tilted surface keeps its neighbours on its plane at any resolution and angle; an occlusion
+    edge (a second surface in the neighbourhood) or a noisy depth does not.
+
+    Args:
+        depth: (1, H, W) camera-z depth (0 = none); normal: (3, H, W) camera-frame normal;
+        K: (3, 3) intrinsics (pixel centres at +0.5).
+    """
+    height, width = depth.shape[-2:]
+    rays = pixel_rays(K.to(depth), height, width)  # (3, H, W), X = depth * ray
+    offset = depth[0] * (normal * rays).sum(0)  # n . X of the pixel's plane
+    padded_depth = F.pad(depth, (1, 1, 1, 1))[0]
+    padded_rays = F.pad(rays, (1, 1, 1, 1))
+    worst = torch.zeros_like(offset)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == 0 and dx == 0:
+                continue
+            rows, cols = slice(1 + dy, 1 + dy + height), slice(1 + dx, 1 + dx + width)
+            neighbour = padded_depth[rows, cols]
+            on_plane = offset / (normal * padded_rays[:, rows, cols]).sum(0)
+            deviation = torch.where(neighbour > 0, (neighbour - on_plane).abs() / depth[0], torch.zeros_like(offset))
+            worst = torch.maximum(worst, deviation)
+    return torch.where(depth[0] > 0, worst, torch.zeros_like(worst))[None]
 
 
 def frames_from_normals(normals: Tensor) -> Tensor:
