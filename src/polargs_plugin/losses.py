@@ -157,10 +157,6 @@ def _reflect(index: Tensor, size: int) -> Tensor:
     return torch.where(index > size - 1, 2 * (size - 1) - index, index)
 
 
-# SSIM from windowed moments, in kornia's order of operations (kept under its former name).
-_ssim_from_moments = ssim_from_moments
-
-
 class ReflectiveTargets:
     r"""One view's constants of :func:`reflective_replacement`, built once (e.g. at preprocess).
 
@@ -171,7 +167,9 @@ class ReflectiveTargets:
 
     - *pixels* strategy: gathers the reflect-padded 11x11 window of each reflective pixel, with
       the targets' windowed mean and second moment precomputed (cheapest when highlights are
-      sparse); equal to the whole-image values up to float rounding;
+      sparse); equal to the whole-image values up to float rounding; on CPU float tensors one
+      compiled pass (:func:`polargs_plugin.reflective_window.reflective_window_losses`), else
+      torch operations;
     - *box* strategy: the fused :func:`polargs_plugin.ssim.ssim_map` on the reflective pixels'
       bounding box grown by the window radius (cheapest for dense highlights, and bounded in
       memory). The box holds every reflective pixel's whole window (or meets the image border,
