@@ -7,6 +7,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import torch
+from torch import Tensor
 
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.mesh import (
@@ -236,31 +237,63 @@ def test_tsdf_of_exact_depth_has_no_signed_bias():
     assert abs(np.median(signed)) < 0.1 * 0.02
 
 
-def test_thick_gaussians_on_the_surface_render_in_front_of_it():
-    """Depth bias, part 2: Gaussians centred on a sphere render their median depth in front of
-    it when round (about 1.4 scales) and on it when flat, so the rendered depth and TSDF
-    cannot make a mesh sit inside; an inside mesh means the trained centres sit inside."""
-    from polargs_plugin.backends.reference.rasterizer import rasterize
-
-    radius, n = 1.0, 6000
+def _surface_disks(radius: float, n: int) -> tuple[Tensor, Tensor, float]:
+    """``n`` points spread evenly on the sphere (a Fibonacci lattice) and the rotations whose
+    z axis is the outward normal there: (n, 3) means, (n, 4) wxyz quaternions, and the spacing."""
     i = np.arange(n) + 0.5
     polar, azimuth = np.arccos(1 - 2 * i / n), math.pi * (1 + 5**0.5) * i
     normals = np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1)
     z = np.array([0.0, 0.0, 1.0])
     quats = np.concatenate([(1 + normals @ z)[:, None], np.cross(np.broadcast_to(z, normals.shape), normals)], 1)
     quats[quats[:, 0] < 1e-6] = [0.0, 1.0, 0.0, 0.0]
-    spacing = math.sqrt(4 * math.pi / n)
+    return (torch.tensor(radius * normals, dtype=torch.float32), torch.tensor(quats, dtype=torch.float32),
+            math.sqrt(4 * math.pi / n) * radius)
+
+
+def test_thick_gaussians_on_the_surface_render_in_front_of_it():
+    """Depth bias, part 2: Gaussians centred on a sphere render their median depth in front of
+    it when round (about 1.4 scales) and on it when flat, so the rendered depth and TSDF
+    cannot make a mesh sit inside; an inside mesh means the trained centres sit inside."""
+    from polargs_plugin.backends.reference.rasterizer import rasterize
+
+    radius, n = RADIUS, 6000
+    means, quats, spacing = _surface_disks(radius, n)
     _, _, Ks, w2cs, masks = sphere_inputs()
     offsets = {}
     for name, thickness in (("flat", 1e-3), ("round", 1.0)):
         scales = torch.tensor([[spacing, spacing, spacing * thickness]] * n, dtype=torch.float32)
         errors = []
         for K, w2c, mask in list(zip(Ks, w2cs, masks))[:2]:
-            out = rasterize(torch.tensor(radius * normals, dtype=torch.float32), torch.tensor(quats, dtype=torch.float32),
-                            scales, torch.full((n,), 0.9), torch.full((n, 3), 0.5), K.float(), w2c.float(), SIZE, SIZE)
+            out = rasterize(means, quats, scales, torch.full((n,), 0.9), torch.full((n, 3), 0.5), K.float(), w2c.float(),
+                            SIZE, SIZE)
             gt, _ = sphere_depth(K.numpy(), w2c.numpy(), radius)
             inner = torch.nn.functional.max_pool2d((~mask).float()[None], 5, 1, 2)[0] == 0
             errors.append((out.median_depth - gt)[inner])
         offsets[name] = float(torch.cat(errors).median()) / spacing
     assert abs(offsets["flat"]) < 0.15  # curvature of tangent disks only
     assert -2.0 < offsets["round"] < -0.8  # in front of the surface, ~1.4 scales
+
+
+def test_the_screen_dilation_widens_the_silhouette_of_surface_gaussians():
+    """Depth bias, part 3: flat Gaussians centred on the sphere cover a wider silhouette than the
+    sphere's, by more than a pixel with vanilla 3DGS's dilation (eps2d = 0.3 px^2) and by a
+    quarter of that without it. A training that must keep every view's silhouette therefore recesses its
+    Gaussians by about that much (docs/evaluation.md "Depth bias")."""
+    from polargs_plugin.backends.reference.rasterizer import rasterize
+
+    n = 6000
+    means, quats, spacing = _surface_disks(RADIUS, n)
+    scales = torch.tensor([[spacing, spacing, spacing * 1e-3]] * n, dtype=torch.float32)
+    _, _, Ks, w2cs, masks = sphere_inputs()
+    widening = {}
+    for eps2d in (0.3, 0.01):
+        outs = []
+        for K, w2c, mask in list(zip(Ks, w2cs, masks))[:2]:
+            out = rasterize(means, quats, scales, torch.full((n,), 0.9), torch.full((n, 3), 0.5), K.float(), w2c.float(),
+                            SIZE, SIZE, eps2d=eps2d)
+            # (covered area - sphere's area) / the sphere's perimeter: the mean widening in pixels
+            area = float(mask.sum())
+            outs.append((float((out.alpha[0] > 0.5).sum()) - area) / (2 * math.sqrt(math.pi * area)))
+        widening[eps2d] = float(np.mean(outs))
+    assert 1.0 < widening[0.3] < 1.8  # 1.35 px: several grazing disks add up along a ray
+    assert abs(widening[0.01]) < 0.35 * widening[0.3]  # 0.32 px: the tangent disks' curvature

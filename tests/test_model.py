@@ -208,6 +208,39 @@ def test_checkpoint_round_trip_continues_identically():
         assert torch.equal(getattr(a, name), getattr(b, name))
 
 
+def test_the_model_renders_and_saves_its_own_dilation():
+    """eps2d belongs to the model: every render uses it (the footprint's variance grows by it,
+    so a Gaussian's 1/e^0.5 radius in pixels is sqrt(s'^2 + eps2d)), a checkpoint keeps it, and a
+    checkpoint without it (older ones) was trained at vanilla's 0.3."""
+    from polargs_plugin.backends.reference.trainer import CPU_EPS2D, TrainConfig
+
+    view = _look_at_view([0.0, 0.0, 4.0], size=32, f=40.0, radius=0.5)
+    params = {
+        "means": torch.zeros(1, 3), "sh_dc": torch.full((1, 1, 3), 2.0), "sh_rest": torch.zeros(1, 0, 3),
+        "opacity_logits": torch.full((1,), 3.0), "log_scales": torch.full((1, 3), math.log(0.02)),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+    }
+    spreads = {}
+    for eps2d in (0.3, 2.0):
+        model = GaussianModel(params, sh_degree=0, eps2d=eps2d)
+        alpha = model.render(view).alpha[0].double()
+        u = torch.arange(32, dtype=torch.float64) + 0.5
+        row = alpha[16]  # the row through the mean at (16, 16): variance from the second moment
+        spreads[eps2d] = float((row * (u - 16) ** 2).sum() / row.sum())
+        restored = GaussianModel.from_checkpoint(copy.deepcopy(model.checkpoint()))
+        assert restored.eps2d == eps2d and torch.equal(restored.render(view).alpha, model.render(view).alpha)
+    screen_variance = (0.02 * 40.0 / 4.0) ** 2  # s f / z, pixels
+    for eps2d, spread in spreads.items():
+        # exact up to the pixel sampling and the alpha >= 1/255 cut-off of the tails
+        assert spread == pytest.approx(screen_variance + eps2d, rel=0.05)
+    old = GaussianModel(params, sh_degree=0).checkpoint()
+    del old["eps2d"]
+    assert GaussianModel.from_checkpoint(old).eps2d == 0.3
+    assert TrainConfig.cpu().eps2d == CPU_EPS2D and TrainConfig().eps2d == 0.3
+    with pytest.raises(ValueError, match="eps2d"):
+        GaussianModel(params, sh_degree=0, eps2d=-1.0)
+
+
 def _look_at_view(eye, size=48, f=60.0, name="v", radius=None) -> View:
     eye = torch.tensor(eye, dtype=torch.float64)
     z = -eye / eye.norm()

@@ -21,7 +21,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
-from polargs_plugin.backends.reference.projection import SH_C0, quat_to_rotmat, rgb_to_sh, sh_to_rgb
+from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D, SH_C0, quat_to_rotmat, rgb_to_sh, sh_to_rgb
 from polargs_plugin.kit.append import RAW_NAMES, edit_rows, logit, pad_rows, raw_from_new
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
@@ -109,10 +109,14 @@ class GaussianModel(nn.Module):
         sh_degree: maximum SH degree; ``sh_rest`` must have ``(sh_degree + 1) ** 2 - 1`` rows.
         extent: scene extent multiplying the position learning rate.
         lrs: learning rates.
+        eps2d: the screen-space dilation (pixels^2) every render of these Gaussians uses
+            (``rasterize``): the parameters are fitted to it, so it belongs to the model and is
+            saved with it.
     """
 
     def __init__(
-        self, params: dict[str, Tensor], sh_degree: int, extent: float = 1.0, lrs: LearningRates | None = None
+        self, params: dict[str, Tensor], sh_degree: int, extent: float = 1.0, lrs: LearningRates | None = None,
+        eps2d: float = DEFAULT_EPS2D,
     ):
         super().__init__()
         missing = set(PARAM_NAMES) - set(params)
@@ -134,6 +138,9 @@ class GaussianModel(nn.Module):
         self.max_sh_degree = int(sh_degree)
         self.active_sh_degree = 0
         self.extent = float(extent)
+        if not eps2d >= 0.0:
+            raise ValueError(f"GaussianModel: eps2d must be >= 0 (pixels^2), got {eps2d}")
+        self.eps2d = float(eps2d)
         self.lrs = lrs or LearningRates()
         self.optimizer = torch.optim.Adam(
             [
@@ -156,6 +163,7 @@ class GaussianModel(nn.Module):
         extent: float = 1.0,
         initial_opacity: float = 0.1,
         lrs: LearningRates | None = None,
+        eps2d: float = DEFAULT_EPS2D,
     ) -> "GaussianModel":
         """Vanilla 3DGS initialisation from a point cloud.
 
@@ -183,7 +191,7 @@ class GaussianModel(nn.Module):
             "log_scales": torch.log(_knn_scale(points)).unsqueeze(1).repeat(1, 3),
             "quats": quats,
         }
-        return cls(params, sh_degree=sh_degree, extent=extent, lrs=lrs)
+        return cls(params, sh_degree=sh_degree, extent=extent, lrs=lrs, eps2d=eps2d)
 
     # ------------------------------------------------------------------ activations
     @property
@@ -217,7 +225,8 @@ class GaussianModel(nn.Module):
 
     def render(self, view: View, background: Tensor | None = None, state: GaussianState | None = None,
                **kwargs) -> RenderOut:
-        """Render ``view`` with the reference rasterizer (extra ``kwargs`` go to ``rasterize``).
+        """Render ``view`` with the reference rasterizer at the model's ``eps2d`` (extra ``kwargs``
+        go to ``rasterize``).
 
         ``state``: this model's :meth:`state`, when the caller already has it (the trainer passes
         the one it hands to the hooks, so the activations are computed and differentiated once)."""
@@ -236,7 +245,7 @@ class GaussianModel(nn.Module):
             view.width,
             view.height,
             background=background,
-            **kwargs,
+            **{"eps2d": self.eps2d, **kwargs},
         )
 
     # ------------------------------------------------------------- learning rates
@@ -319,13 +328,16 @@ class GaussianModel(nn.Module):
             "max_sh_degree": self.max_sh_degree,
             "active_sh_degree": self.active_sh_degree,
             "extent": self.extent,
+            "eps2d": self.eps2d,
         }
 
     @classmethod
     def from_checkpoint(cls, data: dict, lrs: LearningRates | None = None, device: str | torch.device = "cpu") -> "GaussianModel":
         """Inverse of :meth:`checkpoint` (the optimizer state, its moments and rates included)."""
         params = {name: t.to(device) for name, t in data["params"].items()}
-        model = cls(params, sh_degree=int(data["max_sh_degree"]), extent=float(data["extent"]), lrs=lrs)
+        # Checkpoints older than the eps2d entry were trained at vanilla's dilation.
+        model = cls(params, sh_degree=int(data["max_sh_degree"]), extent=float(data["extent"]), lrs=lrs,
+                    eps2d=float(data.get("eps2d", DEFAULT_EPS2D)))
         model.optimizer.load_state_dict(data["optimizer"])
         model.active_sh_degree = int(data["active_sh_degree"])
         return model

@@ -41,6 +41,7 @@ __all__ = [
 SH_C0 = 0.28209479177387814  # 1 / (2 sqrt(pi)), the degree-0 real SH basis value
 DEPTH_CLAMP_SIGMAS = 5.0
 ALPHA_MIN = 1.0 / 255.0
+DEFAULT_EPS2D = 0.3  # vanilla 3DGS's screen-space dilation, pixels^2
 FOV_CLAMP = 1.3  # the EWA Jacobian is evaluated with x/z, y/z limited to 1.3x the field of view
 EXTENT_SLACK = 1e-4  # relative slack of the opacity-aware extents
 
@@ -203,7 +204,7 @@ def project_gaussians(
     height: int,
     near: float = 0.01,
     far: float = 100.0,
-    eps2d: float = 0.3,
+    eps2d: float = DEFAULT_EPS2D,
 ) -> Projection:
     """EWA projection of 3D Gaussians into one pinhole camera.
 

@@ -29,6 +29,7 @@ from .projection import (
     _C2,
     _C3,
     ALPHA_MIN,
+    DEFAULT_EPS2D,
     DEPTH_CLAMP_SIGMAS,
     EXTENT_SLACK,
     FOV_CLAMP,
@@ -526,7 +527,7 @@ def project_numba(
     height: int,
     near: float = 0.01,
     far: float = 100.0,
-    eps2d: float = 0.3,
+    eps2d: float = DEFAULT_EPS2D,
 ) -> tuple[Projection, Tensor]:
     """:func:`~.projection.project_gaussians` plus the per-view colour, in one compiled kernel.
 

@@ -19,7 +19,7 @@ from torch import Tensor
 from ...types import RenderOut
 from .binning import bin_gaussians
 from .composite_torch import composite_torch
-from .projection import eval_sh, project_gaussians
+from .projection import DEFAULT_EPS2D, eval_sh, project_gaussians
 
 __all__ = ["rasterize", "resolve_backend"]
 
@@ -63,6 +63,7 @@ def rasterize(
     near: float = 0.01,
     far: float = 100.0,
     tile_size: int = 16,
+    eps2d: float = DEFAULT_EPS2D,
     backend: Backend = "auto",
     projection: ProjectionPath = "auto",
 ) -> RenderOut:
@@ -82,6 +83,9 @@ def rasterize(
         background: optional (3,) colour composited behind the Gaussians.
         near, far: Gaussians whose mean camera z is outside [near, far] are culled.
         tile_size: tile edge in pixels for binning.
+        eps2d: low-pass dilation added to each screen covariance's diagonal (pixels^2; vanilla
+            3DGS's 0.3). It widens every footprint by a fixed number of pixels, so at low
+            resolution it is a larger share of the object (docs/evaluation.md "Depth bias").
         backend: "torch" (exact reference, CPU or CUDA), "numba" (compiled CPU kernel) or
             "auto" (numba on CPU when available, torch otherwise).
         projection: how the numba path projects and evaluates SH: "auto"/"numba" with the
@@ -130,10 +134,10 @@ def rasterize(
         from .projection_numba import project_numba
 
         proj, colors = project_numba(
-            means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far
+            means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far, eps2d
         )
     else:
-        proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far)
+        proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far, eps2d)
         if colors.dim() == 3:
             w2c = world_to_camera.to(means)
             camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
