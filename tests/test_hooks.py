@@ -1,5 +1,6 @@
 """PolarHooks end to end on a tiny hand-built scene with a fake render (no trainer, no densify)."""
 
+import re
 import sys
 import types
 
@@ -238,3 +239,31 @@ def test_package_exports_polar_hooks_lazily():
     code = "import sys, polargs_plugin; print(sorted(m for m in ('numba', 'open3d') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_polar_config_from_dict_checks_each_value_against_its_field():
+    """Wrong kinds fail when the config is built, naming the setting, not later inside training."""
+    data = PolarConfig.synthetic().to_dict()
+    data["losses"]["alpha_normal"] = 1  # an int in a float field is a number
+    data["correction"]["specular_dolp"] = [0.2, 0.9]  # JSON lists become the field's tuples
+    data["densify"]["seed_max_plane_deviation"] = None
+    config = PolarConfig.from_dict(data)
+    assert config.losses.alpha_normal == 1.0 and isinstance(config.losses.alpha_normal, float)
+    assert config.correction.specular_dolp == (0.2, 0.9) and config.densify.seed_max_plane_deviation is None
+    for path, value, message in (
+        ("losses.alpha_normal", "0.1", "config.losses.alpha_normal: expected a number, got '0.1'"),
+        ("losses.alpha_normal", float("nan"), "config.losses.alpha_normal: expected a number"),
+        ("densify.enabled", 1, "config.densify.enabled: expected true or false, got 1"),
+        ("densify.patchmatch.propagation_distances", [1, 2.5],
+         "config.densify.patchmatch.propagation_distances: expected a list of integers"),
+    ):
+        bad = PolarConfig.synthetic().to_dict()
+        *sections, key = path.split(".")
+        node = bad
+        for section in sections:
+            node = node[section]
+        node[key] = value
+        with pytest.raises(ValueError, match=re.escape(message)):
+            PolarConfig.from_dict(bad)
+    with pytest.raises(ValueError, match="config.losses: expected a dict"):
+        PolarConfig.synthetic().update({"losses": 0.5})

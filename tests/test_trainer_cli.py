@@ -159,6 +159,17 @@ def test_config_file_sets_any_field_and_unknown_keys_name_key_and_file(fake_data
     settings.write_text(json.dumps({"train": {"iterations": "many"}}))
     assert main(["train", "fake", "--out", str(tmp_path / "t"), "--config", str(settings)]) == 2
     assert "train.iterations: expected an integer" in capsys.readouterr().err
+    # Checked against the field's annotation: an optional threshold takes null, a pair takes two numbers.
+    for content, message in (({"polar": {"correction": {"specular_dolp": [0.3]}}},
+                              "polar.correction.specular_dolp: expected a list of 2 (a number, a number)"),
+                             ({"polar": {"correction": {"rho_d": "high"}}}, "polar.correction.rho_d: expected a number or null")):
+        settings.write_text(json.dumps(content))
+        assert main(["train", "fake", "--out", str(tmp_path / "t"), "--config", str(settings)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1
+    settings.write_text(json.dumps({"polar": {"densify": {"seed_max_plane_deviation": None}}}))
+    assert main(["train", "fake", "--out", str(tmp_path / "n"), "--iters", "1", "--quiet", "--config", str(settings)]) == 0
+    assert _summary(tmp_path / "n")["polar_config"]["densify"]["seed_max_plane_deviation"] is None
     settings.write_text("{not json")
     assert main(["train", "fake", "--out", str(tmp_path / "t"), "--config", str(settings)]) == 2
     assert f"{settings}: not valid JSON" in capsys.readouterr().err

@@ -9,6 +9,9 @@ factor that goes with a vanilla schedule factor, docs/speed.md "CPU preset").
 
 from __future__ import annotations
 
+import math
+import types
+import typing
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Any
 
@@ -23,6 +26,7 @@ __all__ = [
     "CPU_FACTOR",
     "POLAR_SCHEDULE_STRETCH",
     "polar_schedule_factor",
+    "check_setting",
 ]
 
 #: Vanilla schedule factor of the CPU preset (``TrainConfig.cpu()``): 30k iterations -> 5000.
@@ -219,17 +223,22 @@ class PolarConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PolarConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise ``KeyError`` naming the key."""
+        """Inverse of :meth:`to_dict`; unknown keys raise ``KeyError`` naming the key, values of
+        the wrong kind ``ValueError`` naming the setting (:func:`check_setting`)."""
         return _fill(cls(), data, "config")
 
     def update(self, data: dict[str, Any]) -> "PolarConfig":
         """Set the fields named in a (nested, partial) dict, e.g. ``{"losses": {"alpha_normal": 0.1}}``,
-        on this config (a preset, say); unknown keys raise ``KeyError`` naming the key. Returns self."""
+        on this config (a preset, say); unknown keys raise ``KeyError`` naming the key, values of
+        the wrong kind ``ValueError`` (:func:`check_setting`). Returns self."""
         return _fill(self, data, "config")
 
 
 def _fill(obj: Any, data: dict[str, Any], where: str) -> Any:
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected a dict of settings, got {data!r}")
     known = {f.name for f in fields(obj)}
+    hints = typing.get_type_hints(type(obj))
     for key, value in data.items():
         if key not in known:
             raise KeyError(f"{where}: unknown setting '{key}' (known: {sorted(known)})")
@@ -237,5 +246,72 @@ def _fill(obj: Any, data: dict[str, Any], where: str) -> Any:
         if is_dataclass(current):
             _fill(current, value, f"{where}.{key}")
         else:
-            setattr(obj, key, tuple(value) if isinstance(current, tuple) else value)
+            setattr(obj, key, check_setting(value, hints[key], f"{where}.{key}"))
     return obj
+
+
+_KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string", type(None): "null"}
+_PLURALS = {bool: "true / false values", int: "integers", float: "numbers", str: "strings"}
+
+
+def _kind(hint: Any) -> str:
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return " or ".join(_kind(h) for h in typing.get_args(hint))
+    if typing.get_origin(hint) is tuple:
+        args = typing.get_args(hint)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list of {_PLURALS.get(args[0], _kind(args[0]))}"
+        return f"a list of {len(args)} ({', '.join(_kind(a) for a in args)})"
+    return _KINDS.get(hint, str(hint))
+
+
+def _fits(value: Any, hint: Any) -> tuple[bool, Any]:
+    """(whether ``value`` fits ``hint``, the value as the field holds it)."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        for option in typing.get_args(hint):
+            ok, converted = _fits(value, option)
+            if ok:
+                return True, converted
+        return False, value
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            return False, value
+        items = args[:1] * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        if len(items) != len(value):
+            return False, value
+        pairs = [_fits(v, h) for v, h in zip(value, items)]
+        return all(ok for ok, _ in pairs), tuple(v for _, v in pairs)
+    if hint is bool:
+        return isinstance(value, bool), value
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool), value
+    if hint is float:
+        number = isinstance(value, (int, float)) and not isinstance(value, bool) and not math.isnan(value)
+        return number, float(value) if number else value
+    if hint is str:
+        return isinstance(value, str), value
+    if hint is type(None):
+        return value is None, value
+    return True, value  # other annotations are not checked here
+
+
+def check_setting(value: Any, hint: Any, where: str) -> Any:
+    """``value`` as a field annotated ``hint`` holds it (a list becomes a tuple, an int in a float
+    field a float); ValueError naming ``where``, the expected kind and the value otherwise.
+
+    Checked: bool, int, float (not NaN), str, None, their unions (``float | None``) and tuples
+    (``tuple[float, float]``, ``tuple[int, ...]``); other annotations pass unchecked.
+
+    >>> check_setting([1, 2.5], tuple[float, float], "correction.specular_dolp")
+    (1.0, 2.5)
+    >>> check_setting("0.1", float | None, "densify.seed_max_plane_deviation")
+    Traceback (most recent call last):
+    ...
+    ValueError: densify.seed_max_plane_deviation: expected a number or null, got '0.1'
+    """
+    ok, converted = _fits(value, hint)
+    if not ok:
+        raise ValueError(f"{where}: expected {_kind(hint)}, got {value!r}")
+    return converted

@@ -317,36 +317,30 @@ def compare_fingerprints(stored: dict[str, Any], current: dict[str, Any]) -> str
 
 
 # ------------------------------------------------------------------------------ settings
-def _check_merge(base: Any, override: Any, where: str, source: str) -> Any:
-    """``override`` merged into ``base`` (a to_dict() tree): unknown keys and wrong types raise."""
-    if isinstance(base, dict):
-        if not isinstance(override, dict):
-            raise PolarInputError(source, f"{where}: expected an object of settings, got {json.dumps(override)}")
-        merged = dict(base)
-        for key, value in override.items():
-            if key not in base:
-                raise PolarInputError(source, f"unknown key '{where}.{key}' (known: {', '.join(sorted(base))})")
-            merged[key] = _check_merge(base[key], value, f"{where}.{key}", source)
-        return merged
-    ok = True
-    if isinstance(base, bool):
-        ok = isinstance(override, bool)
-        kind = "true or false"
-    elif isinstance(base, int):
-        ok = isinstance(override, int) and not isinstance(override, bool)
-        kind = "an integer"
-    elif isinstance(base, float):
-        ok = isinstance(override, (int, float)) and not isinstance(override, bool)
-        kind = "a number"
-    elif isinstance(base, str):
-        ok = isinstance(override, str)
-        kind = "a string"
-    elif isinstance(base, (list, tuple)):
-        ok = isinstance(override, list)
-        kind = "a list"
-    if not ok:
-        raise PolarInputError(source, f"{where}: expected {kind}, got {json.dumps(override)}")
-    return tuple(override) if isinstance(base, tuple) else override
+def _check_merge(config: Any, override: Any, where: str, source: str) -> dict[str, Any]:
+    """The settings of the dataclass ``config`` as a dict, with ``override`` (a nested, partial
+    dict) merged in: unknown keys and values that do not fit their field's type raise
+    (:func:`polargs_plugin.config.check_setting`)."""
+    from dataclasses import asdict, fields, is_dataclass
+    from typing import get_type_hints
+
+    from polargs_plugin.config import check_setting
+
+    if not isinstance(override, dict):
+        raise PolarInputError(source, f"{where}: expected an object of settings, got {json.dumps(override)}")
+    merged = {f.name: getattr(config, f.name) for f in fields(config)}
+    hints = get_type_hints(type(config))
+    for key, value in override.items():
+        if key not in merged:
+            raise PolarInputError(source, f"unknown key '{where}.{key}' (known: {', '.join(sorted(merged))})")
+        if is_dataclass(merged[key]):
+            merged[key] = _check_merge(merged[key], value, f"{where}.{key}", source)
+            continue
+        try:
+            merged[key] = check_setting(value, hints[key], f"{where}.{key}")
+        except ValueError as err:
+            raise PolarInputError(source, str(err)) from None
+    return {key: asdict(value) if is_dataclass(value) else value for key, value in merged.items()}
 
 
 def load_config_file(path: Path | None) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -381,7 +375,7 @@ def polar_config(preset: str, factor: float | None, overrides: dict[str, Any], s
         # The schedule fields cpu_demo scales (whatever they are): taken from it, onto the preset.
         scaled, plain = PolarConfig.cpu_demo(polar_schedule_factor(factor)).to_dict(), PolarConfig.synthetic().to_dict()
         config.update(_changed(plain, scaled))
-    data = _check_merge(config.to_dict(), overrides, "polar", source)
+    data = _check_merge(config, overrides, "polar", source)
     config = PolarConfig.from_dict(data)
     for name, on in (switches or {}).items():
         if on:
@@ -410,7 +404,7 @@ def train_config(schedule: str, factor: float | None, overrides: dict[str, Any],
         base = TrainConfig.cpu() if factor is None else TrainConfig.cpu(factor)
     else:
         base = TrainConfig.paper()
-    data = _check_merge(base.to_dict(), overrides, "train", source)
+    data = _check_merge(base, overrides, "train", source)
     data.update(extra)
     try:
         return TrainConfig.from_dict(data)
