@@ -277,8 +277,8 @@ def test_thick_gaussians_on_the_surface_render_in_front_of_it():
 def test_the_screen_dilation_widens_the_silhouette_of_surface_gaussians():
     """Depth bias, part 3: flat Gaussians centred on the sphere cover a wider silhouette than the
     sphere's, by more than a pixel with vanilla 3DGS's dilation (eps2d = 0.3 px^2) and by a
-    quarter of that without it. A training that must keep every view's silhouette therefore recesses its
-    Gaussians by about that much (docs/evaluation.md "Depth bias")."""
+    quarter of that without it. A training that must keep every view's silhouette therefore
+    recesses its Gaussians by about that much (docs/evaluation.md "Depth bias")."""
     from polargs_plugin.backends.reference.rasterizer import rasterize
 
     n = 6000
