@@ -176,3 +176,44 @@ def test_means2d_and_radii() -> None:
                                  colors[i : i + 1], K, w2c, width, height)
         assert (single["alpha"].max() > 0) <= (out.radii[i] > 0)
     assert out.radii.dtype == torch.int64
+
+
+def _row_case(rng: np.random.Generator, c0: float) -> tuple:
+    """A row of a random Gaussian: sigma(dx) = c0 dx^2 / 2 + k1 dx + k0, box [ulo, uhi]."""
+    k1, k0 = rng.normal() * 2.0, abs(rng.normal()) * 0.3
+    mx, opacity = rng.uniform(-4.0, 24.0), rng.uniform(0.05, 1.0)
+    ulo = int(rng.integers(0, 8))
+    return c0, k1, k0, mx, opacity, ulo, ulo + int(rng.integers(0, 16))
+
+
+def test_row_falloffs_are_exp_on_exactly_the_contributing_span() -> None:
+    """The numba compositing's exp(-sigma) along a row (one exponential at the row's peak, then a
+    multiplication a pixel) against numpy's exponential at every pixel: the span is exactly the
+    pixels with opacity exp(-sigma) >= 1/255, the values agree to 1e-13, also where the peak lies
+    outside the box and, for a row with c0 <= 0 (never binned) or a NaN centre, over the whole box."""
+    from polargs_plugin.backends.reference.composite_numba import _row_falloffs
+
+    rng = np.random.default_rng(0)
+    spans = clipped = 0
+    for case in range(400):
+        c0 = rng.uniform(0.05, 12.0) if case % 10 else -rng.uniform(0.0, 1.0)
+        c0, k1, k0, mx, opacity, ulo, uhi = _row_case(rng, c0)
+        dx = np.arange(ulo, uhi + 1) + 0.5 - mx
+        exact = np.exp(-((0.5 * c0 * dx + k1) * dx + k0))
+        falloff = np.full(16, np.nan)
+        first, last = _row_falloffs(falloff, c0, k1, k0, mx, opacity, ulo, uhi)
+        if c0 <= 0:
+            assert (first, last) == (ulo, uhi)
+        else:
+            assert not np.any(np.abs(opacity * exact - ALPHA_MIN) < 1e-12)  # no knife edge in these cases
+            inside = np.flatnonzero(opacity * exact >= ALPHA_MIN) + ulo
+            expected = (inside[0], inside[-1]) if inside.size else None
+            assert (first, last) == expected or (expected is None and first > last)
+            spans += inside.size > 0
+            clipped += inside.size > 0 and not ulo <= mx - k1 / c0 <= uhi + 1
+        got = falloff[first - ulo : last - ulo + 1]
+        np.testing.assert_allclose(got, exact[first - ulo : last - ulo + 1], rtol=1e-13, atol=0)
+    assert spans > 100 and clipped > 10, (spans, clipped)  # spans, and spans the box cuts short
+    falloff = np.zeros(16)
+    assert _row_falloffs(falloff, 1.0, 0.5, 0.1, math.nan, 0.5, 2, 9) == (2, 9)  # NaN: every pixel, no crash
+    assert np.isnan(falloff[:8]).all()

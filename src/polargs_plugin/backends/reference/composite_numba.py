@@ -4,7 +4,10 @@ Threads over tiles (``prange``). Within a tile the forward walks the tile's list
 back, and each Gaussian updates only the tile's pixels inside its footprint box (from the conic
 actually composited, with margins far above rounding, so that no pixel that could pass the exact
 alpha >= 1/255 test is left out; per-pixel early termination, rows whose pixels have all stopped
-are skipped). Each pixel sees its Gaussians in list order with the same arithmetic as a
+are skipped). Along each row of the box, exp(-sigma) comes from one exponential at the row's
+peak and a multiplication a pixel (:func:`_row_falloffs`), which also bounds the row to the span
+where alpha >= 1/255 (a fifth of a box's pixels lie outside it). Forward and backward get the
+same values from it. Each pixel sees its Gaussians in list order with the same arithmetic as a
 pixel-by-pixel walk, so the sums are bit for bit those of a pixel-major loop. The backward walks
 the same list back to front from each pixel's final transmittance (T_i = T_{i+1} / (1 - alpha_i),
 alpha <= 0.99 keeps this stable) and sums each (tile, Gaussian) pair's gradient over its pixels
@@ -47,12 +50,12 @@ def _coeffs(ray_coeffs, g):
 
 
 @numba.njit(inline="always")
-def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, sigma_max):
+def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds):
     """Gaussian g's values (its ray coefficients: :func:`_coeffs`) as float64 locals, read once
     before its pixel loop: numba cannot prove that the stores into the pixel state do not alias the
     inputs, and would reload every input at every pixel otherwise."""
     return (
-        sigma_max[g], float(means2d[g, 0]), float(means2d[g, 1]),
+        float(means2d[g, 0]), float(means2d[g, 1]),
         float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opacities[g]),
         float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2]),
         float(normals[g, 0]), float(normals[g, 1]), float(normals[g, 2]),
@@ -73,6 +76,53 @@ def _row(c1, c2, q, py, dy):
 def _sigma(c0, k1, k0, dx):
     """sigma = d^T C d / 2 at offset (dx, dy) from the row's constants (:func:`_row`)."""
     return (0.5 * c0 * dx + k1) * dx + k0
+
+
+@numba.njit(inline="always")
+def _row_falloffs(falloff, c0, k1, k0, mx, opacity, ulo, uhi):
+    """exp(-sigma) along a pixel row (constants k1, k0: :func:`_row`) into falloff[u - ulo] for the
+    span [first, last] of the row's pixels u in [ulo, uhi] where alpha = opacity exp(-sigma) reaches
+    ALPHA_MIN; returns (first, last), first > last when none.
+
+    sigma(dx) = (c0 dx / 2 + k1) dx + k0 is convex along the row (c0 > 0), smallest at the pixel
+    nearest dx = -k1 / c0; from there exp(-sigma) only falls both ways, and the step
+    sigma(dx + h) - sigma(dx) = h (c0 dx + k1) + c0 / 2 (h = +-1) changes by c0 a pixel, so one
+    exponential starts each way and two multiplications a pixel go on (relative error a few ulps
+    over a tile's row). Where c0 > 0 fails (a conic that is not positive definite is never binned)
+    or the peak is not finite (NaN inputs), every pixel of the box gets its own exponential."""
+    centre = mx - k1 / c0  # pixel coordinate of the smallest sigma
+    if not (c0 > 0.0 and abs(centre) < 1e9):
+        for u in range(ulo, uhi + 1):
+            falloff[u - ulo] = np.exp(-_sigma(c0, k1, k0, u + 0.5 - mx))
+        return ulo, uhi
+    peak = min(max(int(math.floor(centre)), ulo), uhi)
+    dx = peak + 0.5 - mx
+    f = np.exp(-_sigma(c0, k1, k0, dx))
+    if opacity * f < ALPHA_MIN:
+        return peak + 1, peak
+    falloff[peak - ulo] = f
+    step = np.exp(-c0)
+    slope = c0 * dx + k1
+    first = last = peak
+    ratio = np.exp(-(slope + 0.5 * c0))
+    g = f
+    for u in range(peak + 1, uhi + 1):
+        g *= ratio
+        if opacity * g < ALPHA_MIN:
+            break
+        falloff[u - ulo] = g
+        last = u
+        ratio *= step
+    ratio = np.exp(slope - 0.5 * c0)
+    g = f
+    for u in range(peak - 1, ulo - 1, -1):
+        g *= ratio
+        if opacity * g < ALPHA_MIN:
+            break
+        falloff[u - ulo] = g
+        first = u
+        ratio *= step
+    return first, last
 
 
 @numba.njit(inline="always")
@@ -106,13 +156,13 @@ def _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _footprint_kernel(means2d, conics, opacities, width, height, boxes, sigma_max):
+def _footprint_kernel(means2d, conics, opacities, width, height, boxes):
     """Per Gaussian: the pixel box (u_lo, u_hi, v_lo, v_hi) holding every pixel centre where
-    o exp(-sigma) >= 1/255 could hold, and the bound ``sigma_max`` above which it cannot.
+    o exp(-sigma) >= 1/255 could hold.
 
-    Both come from the conic actually composited (not the projection's extents), with relative
-    margins far above float64 rounding, so skipping pixels outside the box or with
-    sigma > sigma_max never changes which pairs pass the exact test alpha >= 1/255."""
+    It comes from the conic actually composited (not the projection's extents), with relative
+    margins far above float64 rounding, so skipping pixels outside the box never changes which
+    pairs pass the exact test alpha >= 1/255."""
     for g in numba.prange(means2d.shape[0]):
         c0, c1, c2 = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
         det = c0 * c2 - c1 * c1
@@ -120,16 +170,13 @@ def _footprint_kernel(means2d, conics, opacities, width, height, boxes, sigma_ma
         if not (det > 0.0 and c0 > 0.0 and c2 > 0.0 and abs(mx) < 1e9 and abs(my) < 1e9):
             # Not positive definite (never binned: extents 0) or non-finite: test every pixel.
             boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = 0, width - 1, 0, height - 1
-            sigma_max[g] = np.inf
             continue
         o = float(opacities[g])
         level = math.log(o / ALPHA_MIN) if o > 0.0 else -1.0
         if level < 0.0:  # sigma >= 0, so alpha <= o < 1/255: never contributes
             boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = 0, -1, 0, -1
-            sigma_max[g] = -1.0
             continue
         level = level * (1.0 + 1e-6) + 1e-9
-        sigma_max[g] = level
         # sigma = 0.5 d^T C d <= level bounds |dx| by sqrt(2 level (C^-1)_xx) = sqrt(2 level c2 / det).
         hx = math.sqrt(2.0 * level * c2 / det) * (1.0 + 1e-6) + 1e-6
         hy = math.sqrt(2.0 * level * c0 / det) * (1.0 + 1e-6) + 1e-6
@@ -149,7 +196,7 @@ def _clip_box(boxes, g, u0, v0, tile_size, width, height):
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _forward_kernel(
-    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes, sigma_max,
+    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes,
     gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
     out_color, out_depth, out_normal, out_alpha, trans_final, median, last_slot, median_slot,
 ):
@@ -170,6 +217,7 @@ def _forward_kernel(
         done = np.zeros(npix, np.bool_)
         row_active = np.full(tile_size, tw, np.int64)  # pixels of each row still compositing
         active = tw * th
+        row_falloff = np.empty(tile_size)  # exp(-sigma) along a row (_row_falloffs)
         for j in range(start, end):
             if active == 0:
                 break
@@ -177,8 +225,8 @@ def _forward_kernel(
             ulo, uhi, vlo, vhi = _clip_box(boxes, g, u0, v0, tile_size, width, height)
             if ulo > uhi or vlo > vhi:
                 continue
-            (smax, mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
-                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, sigma_max)
+            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
+                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds)
             q = _coeffs(ray_coeffs, g)
             for v in range(vlo, vhi + 1):
                 if row_active[v - v0] == 0:
@@ -186,16 +234,13 @@ def _forward_kernel(
                 py = v + 0.5
                 dy = py - my
                 k1, k0, e0, e1, e2 = _row(c1, c2, q, py, dy)
-                for u in range(ulo, uhi + 1):
+                first, last_u = _row_falloffs(row_falloff, c0, k1, k0, mx, opacity, ulo, uhi)
+                for u in range(first, last_u + 1):
                     p = (v - v0) * tile_size + (u - u0)
                     if done[p]:
                         continue
                     px = u + 0.5
-                    dx = px - mx
-                    sigma = _sigma(c0, k1, k0, dx)
-                    if sigma > smax:
-                        continue
-                    alpha = min(opacity * np.exp(-sigma), ALPHA_MAX)
+                    alpha = min(opacity * row_falloff[u - ulo], ALPHA_MAX)
                     if alpha < ALPHA_MIN:
                         continue
                     tp = trans[p]
@@ -239,7 +284,7 @@ def _forward_kernel(
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _backward_kernel(
-    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes, sigma_max,
+    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes,
     gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
     trans_final, last_slot, median_slot, grad_color, grad_depth, grad_normal, grad_alpha, grad_median, pair_grads,
 ):
@@ -258,6 +303,7 @@ def _backward_kernel(
         med_j = np.full(npix, -1, np.int64)
         row_end = np.full(tile_size, start, np.int64)  # one past the last slot any pixel of the row uses
         end = start
+        row_falloff = np.empty(tile_size)  # the forward's exp(-sigma) along a row
         for v in range(v0, v0 + th):
             for u in range(u0, u0 + tw):
                 p = (v - v0) * tile_size + (u - u0)
@@ -280,8 +326,8 @@ def _backward_kernel(
             if ulo > uhi or vlo > vhi:
                 pair_grads[j, :] = 0.0
                 continue
-            (smax, mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
-                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, sigma_max)
+            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
+                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds)
             q = _coeffs(ray_coeffs, g)
             # This pair's gradient, summed in float64 locals (registers, not memory) over the
             # pixels in row-major order and written once (each pair belongs to one tile).
@@ -301,16 +347,14 @@ def _backward_kernel(
                 # the mean, s and s t sums for the ray moments.
                 r_ds = r_dsx = r_dsxx = 0.0
                 r_s = r_sx = r_st = r_stx = r_stxx = 0.0
-                for u in range(ulo, uhi + 1):
+                first, last_u = _row_falloffs(row_falloff, c0, k1, k0, mx, opacity, ulo, uhi)
+                for u in range(first, last_u + 1):
                     p = (v - v0) * tile_size + (u - u0)
                     if j >= last[p]:
                         continue
                     px = u + 0.5
                     dx = px - mx
-                    sigma = _sigma(c0, k1, k0, dx)
-                    if sigma > smax:
-                        continue
-                    falloff = np.exp(-sigma)
+                    falloff = row_falloff[u - ulo]
                     raw = opacity * falloff
                     alpha = min(raw, ALPHA_MAX)
                     if alpha < ALPHA_MIN:
@@ -474,10 +518,10 @@ class _CompositeFunction(torch.autograd.Function):
             np.empty((height, width), np.int64),  # list slot of the median Gaussian (-1: none)
         )
         num = arrays[0].shape[0]
-        boxes, sigma_max = np.empty((num, 4), np.int64), np.empty(num, np.float64)
+        boxes = np.empty((num, 4), np.int64)
         with _scheduling():
-            _footprint_kernel(arrays[0], arrays[1], arrays[2], width, height, boxes, sigma_max)
-            arrays = (*arrays, boxes, sigma_max)
+            _footprint_kernel(arrays[0], arrays[1], arrays[2], width, height, boxes)
+            arrays = (*arrays, boxes)
             _forward_kernel(*arrays, *grid, *outs[:4], state[0], outs[4][0], state[1], state[2])
         ctx.arrays, ctx.grid, ctx.state = arrays, grid, state
         ctx.dtype = dtype
