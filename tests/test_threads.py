@@ -62,13 +62,34 @@ def test_apply_sets_torch_and_numba_counts(restore_threads):
     assert numba_threads() == 1
 
 
-def test_rasterizer_scheduling_uses_the_policy(restore_threads):
-    from polargs_plugin.backends.reference.composite_numba import _scheduling
+@numba.njit(parallel=True)
+def _thread_ids(out):
+    for i in numba.prange(out.shape[0]):
+        out[i] = numba.get_thread_id()
 
+
+def test_numba_scheduling_uses_the_policy_and_restores_the_settings(restore_threads):
+    """Every numba kernel of the package runs inside numba_scheduling (the rasterizer, SSIM, L_dn,
+    nearest-neighbour queries): the policy's count inside, a cap at NUMBA_NUM_THREADS, the chunk
+    size inside, and the caller's count and chunk size back afterwards."""
+    import numpy as np
+
+    from polargs_plugin.threads import numba_scheduling
+
+    limit = numba.config.NUMBA_NUM_THREADS
     ThreadPolicy(threads=1).apply()
-    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-    with _scheduling():
+    numba.set_num_threads(limit)
+    previous_chunksize = numba.get_parallel_chunksize()
+    ids = np.full(64, -1)
+    with numba_scheduling(chunksize=4):
         assert numba.get_num_threads() == 1
+        assert numba.get_parallel_chunksize() == 4
+        _thread_ids(ids)
+    assert (ids == 0).all()  # one thread did every iteration
+    assert numba.get_num_threads() == limit
+    assert numba.get_parallel_chunksize() == previous_chunksize
+    with numba_scheduling(threads=limit + 5):
+        assert numba.get_num_threads() == limit
 
 
 def test_apply_environment_on_a_mapping():

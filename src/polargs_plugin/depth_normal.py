@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from polargs_plugin.threads import numba_threads
+from polargs_plugin.threads import numba_scheduling
 
 __all__ = ["depth_normal_loss_fused"]
 
@@ -190,8 +190,8 @@ class _FusedDepthNormal(torch.autograd.Function):
         k = _intrinsics(K)
         height = d.shape[0]
         row_loss, row_weight = np.zeros(height), np.zeros(height)
-        numba.set_num_threads(numba_threads())
-        _forward_kernel(d, n, a, k, row_loss, row_weight)
+        with numba_scheduling():
+            _forward_kernel(d, n, a, k, row_loss, row_weight)
         denominator = max(float(row_weight.sum()), _EPS_WEIGHT)
         ctx.arrays = (d, n, a, k)
         ctx.denominator = denominator
@@ -205,8 +205,8 @@ class _FusedDepthNormal(torch.autograd.Function):
         grad_depth = np.empty(d.shape, np.float64)
         grad_normal = np.empty(n.shape, np.float64)
         g_du, g_dv = np.empty(n.shape, np.float64), np.empty(n.shape, np.float64)
-        numba.set_num_threads(numba_threads())
-        _backward_kernel(d, n, a, k, float(grad) / ctx.denominator, grad_depth, grad_normal, g_du, g_dv)
+        with numba_scheduling():
+            _backward_kernel(d, n, a, k, float(grad) / ctx.denominator, grad_depth, grad_normal, g_du, g_dv)
         return (torch.from_numpy(grad_depth)[None].to(ctx.dtype), torch.from_numpy(grad_normal).to(ctx.dtype),
                 None, None)
 

@@ -308,7 +308,7 @@ class SampleIndex:
             (Q,) float64 distances (the same floats as ``cKDTree.query``), (Q,) int64 indices into
             the points given to :meth:`build`.
         """
-        from polargs_plugin.threads import numba_threads
+        from polargs_plugin.threads import numba_scheduling
 
         queries = np.asarray(queries, dtype=np.float64)
         if queries.ndim != 2 or queries.shape[1] != 3:
@@ -322,10 +322,10 @@ class SampleIndex:
         sorted_queries = np.ascontiguousarray(queries[order])
         scale = max(self.scale, float(np.abs(sorted_queries).max()))
         d2, index = np.empty(len(queries)), np.empty(len(queries), dtype=np.int64)
-        threads = numba_threads() if threads is None else max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
-        numba.set_num_threads(threads)
-        _query_kernel(self.points, self.child, self.start, self.end, self.box_lo, self.box_hi, self.centre, self.axes,
-                      self.ext_lo, self.ext_hi, self.depth, sorted_queries, _SLACK * (2 * scale) ** 2, d2, index)
+        with numba_scheduling(threads):
+            _query_kernel(self.points, self.child, self.start, self.end, self.box_lo, self.box_hi, self.centre,
+                          self.axes, self.ext_lo, self.ext_hi, self.depth, sorted_queries, _SLACK * (2 * scale) ** 2,
+                          d2, index)
         distance, nearest = np.empty(len(queries)), np.empty(len(queries), dtype=np.int64)
         distance[order], nearest[order] = np.sqrt(d2), self.order[index]
         return distance, nearest

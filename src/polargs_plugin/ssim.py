@@ -23,9 +23,6 @@ autograd).
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
-
 import numba
 import numpy as np
 import torch
@@ -33,7 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from polargs_plugin.threads import numba_path, numba_threads
+from polargs_plugin.threads import numba_path, numba_scheduling
 
 __all__ = [
     "C1",
@@ -271,18 +268,6 @@ def _backward_kernel(x, y, grad, coef, weights, grad_x, grad_y, want_x, want_y):
                 out[col] = h[3, col] + 2.0 * yr[col] * h[1, col] + xr[col] * h[2, col]
 
 
-@contextlib.contextmanager
-def _scheduling() -> Iterator[None]:
-    """Numba threads as the thread policy says (:func:`polargs_plugin.threads.numba_threads`: never
-    more than torch uses, one per pytest-xdist worker, say)."""
-    previous = numba.get_num_threads()
-    numba.set_num_threads(numba_threads())
-    try:
-        yield
-    finally:
-        numba.set_num_threads(previous)
-
-
 class _FusedSSIM(torch.autograd.Function):
     """(N, H, W) float32/float64 CPU planes -> (N, H, W) SSIM map; backward by hand."""
 
@@ -294,7 +279,7 @@ class _FusedSSIM(torch.autograd.Function):
         with_coef = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
         ssim = np.empty_like(x)
         coef = np.empty((4, *x.shape) if with_coef else (4, 0, 0, 0), x.dtype)
-        with _scheduling():
+        with numba_scheduling():
             _forward_kernel(x, y, weights, C1, C2, EPS, ssim, coef, with_coef)
         if with_coef:
             ctx.arrays = (x, y, coef, weights)
@@ -309,7 +294,7 @@ class _FusedSSIM(torch.autograd.Function):
         g = grad.to(ctx.dtype).contiguous().numpy()
         grad_x = np.empty_like(x) if want_x else np.empty((0, 0, 0), x.dtype)
         grad_y = np.empty_like(x) if want_y else np.empty((0, 0, 0), x.dtype)
-        with _scheduling():
+        with numba_scheduling():
             _backward_kernel(x, y, g, coef, weights, grad_x, grad_y, want_x, want_y)
         return (torch.from_numpy(grad_x) if want_x else None, torch.from_numpy(grad_y) if want_y else None, None)
 

@@ -30,12 +30,17 @@ until its first parallel kernel) and reports, in :attr:`AppliedPolicy.notes`, wh
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any, MutableMapping
 
-__all__ = ["ThreadPolicy", "AppliedPolicy", "available_cores", "numba_threads", "current_policy", "numba_path"]
+__all__ = [
+    "ThreadPolicy", "AppliedPolicy", "available_cores", "numba_threads", "numba_scheduling", "current_policy",
+    "numba_path",
+]
 
 _LAYERS = ("workqueue", "omp", "tbb", "default")
 _WAIT_POLICIES = ("passive", "active")
@@ -222,6 +227,27 @@ def numba_threads() -> int:
     if _applied is not None:
         count = min(count, _applied.numba_threads)
     return max(1, min(count, int(numba.config.NUMBA_NUM_THREADS)))
+
+
+@contextlib.contextmanager
+def numba_scheduling(threads: int | None = None, chunksize: int = 0) -> Iterator[None]:
+    """The numba kernels run inside use ``threads`` threads (default :func:`numba_threads`, the
+    policy's count; at most ``NUMBA_NUM_THREADS``) and hand a ``prange``'s iterations out
+    ``chunksize`` at a time (0: numba's even split; a few at a time where iterations differ a lot
+    in cost, like the rasterizer's tiles). Both settings are restored on exit, so a caller's own
+    numba settings survive a render, an SSIM or a nearest-neighbour query."""
+    import numba
+
+    limit = int(numba.config.NUMBA_NUM_THREADS)
+    count = numba_threads() if threads is None else max(1, min(int(threads), limit))
+    previous_threads = numba.get_num_threads()
+    numba.set_num_threads(count)
+    previous_chunksize = numba.set_parallel_chunksize(chunksize)
+    try:
+        yield
+    finally:
+        numba.set_parallel_chunksize(previous_chunksize)
+        numba.set_num_threads(previous_threads)
 
 
 def numba_path(tensor) -> bool:

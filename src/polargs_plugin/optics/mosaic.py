@@ -35,6 +35,7 @@ from torch import Tensor
 
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.optics.stokes import stokes_from_intensities
+from polargs_plugin.threads import numba_scheduling
 
 __all__ = [
     "MOSAIC_PATTERNS",
@@ -350,7 +351,8 @@ def stokes_from_raw(raw: np.ndarray | Tensor, pattern: str = "mono", bit_depth: 
     # numpy asks the kernel for transparent huge pages on large arrays (torch.empty does not):
     # first-touch page faults on the 9 output planes otherwise cost more than the kernel.
     out = torch.from_numpy(np.empty((3, image.shape[0], *array.shape), dtype=np.float32))
-    _stokes_kernel(image, full, out.numpy())
+    with numba_scheduling():
+        _stokes_kernel(image, full, out.numpy())
     # OpenCV repeats the inner neighbour on the one-pixel border (columns first, then rows);
     # Stokes are linear per pixel, so repeating them is the same.
     out[..., 0], out[..., -1] = out[..., 1], out[..., -2]

@@ -16,16 +16,14 @@ sums the rows per Gaussian. Gradients match the torch path (tests/).
 """
 from __future__ import annotations
 
-import contextlib
 import math
-from collections.abc import Iterator
 
 import numba
 import numpy as np
 import torch
 from torch import Tensor
 
-from polargs_plugin.threads import numba_threads
+from polargs_plugin.threads import numba_scheduling
 
 from .binning import TileBins
 from .composite_torch import ALPHA_MAX, T_MIN, Composite
@@ -36,7 +34,7 @@ __all__ = ["composite_numba", "tile_lists"]
 # Columns of the per-pair gradient rows: means2d 2, conics 3, opacity 1, colour 3, normal 3,
 # ray_coeffs 9, ray_offsets 3, depth_bounds 2.
 _GRAD_COLS = 26
-_TILES_PER_CHUNK = 4
+_TILES_PER_CHUNK = 4  # tiles handed to a thread at a time: their lists differ a lot in length
 
 
 @numba.njit(inline="always")
@@ -477,20 +475,6 @@ def _sum_pairs(gauss_ids, pair_grads, grads):
             grads[g, c] += pair_grads[j, c]
 
 
-@contextlib.contextmanager
-def _scheduling() -> Iterator[None]:
-    """Threads as the process's thread policy says (:func:`polargs_plugin.threads.numba_threads`:
-    the count of the applied :class:`~polargs_plugin.threads.ThreadPolicy`, never more than torch
-    uses, e.g. one per pytest-xdist worker); tiles handed out a few at a time, since their lists
-    differ a lot in length."""
-    numba.set_num_threads(numba_threads())
-    previous = numba.set_parallel_chunksize(_TILES_PER_CHUNK)
-    try:
-        yield
-    finally:
-        numba.set_parallel_chunksize(previous)
-
-
 def _np(x: Tensor) -> np.ndarray:
     return x.detach().contiguous().numpy()
 
@@ -519,7 +503,7 @@ class _CompositeFunction(torch.autograd.Function):
         )
         num = arrays[0].shape[0]
         boxes = np.empty((num, 4), np.int64)
-        with _scheduling():
+        with numba_scheduling(chunksize=_TILES_PER_CHUNK):
             _footprint_kernel(arrays[0], arrays[1], arrays[2], width, height, boxes)
             arrays = (*arrays, boxes)
             _forward_kernel(*arrays, *grid, *outs[:4], state[0], outs[4][0], state[1], state[2])
@@ -533,7 +517,7 @@ class _CompositeFunction(torch.autograd.Function):
         gauss_ids = ctx.grid[0]
         pair_grads = np.empty((gauss_ids.shape[0], _GRAD_COLS), np.float64)
         output_grads = (_np(g.to(dtype)) for g in (grad_color, grad_depth, grad_normal, grad_alpha, grad_median))
-        with _scheduling():
+        with numba_scheduling(chunksize=_TILES_PER_CHUNK):
             _backward_kernel(*ctx.arrays, *ctx.grid, *ctx.state, *output_grads, pair_grads)
         grads = np.zeros((ctx.arrays[0].shape[0], _GRAD_COLS), np.float64)
         _sum_pairs(gauss_ids, pair_grads, grads)

@@ -23,7 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .composite_numba import _scheduling
+from polargs_plugin.threads import numba_scheduling
+
 from .projection import (
     _C1,
     _C2,
@@ -492,7 +493,7 @@ class _ProjectFunction(torch.autograd.Function):
             torch.empty(n, 2, dtype=dtype),
         )
         scalars = (float(width), float(height), float(near), float(far), float(eps2d))
-        with _scheduling():
+        with numba_scheduling():
             kmat, w2c, kinv, cam_center = camera
             _forward_kernel(*arrays[:3], _np(opacities), arrays[3], degree, w2c, kmat, kinv, cam_center,
                             *scalars, *(o.numpy() for o in outs))
@@ -507,7 +508,7 @@ class _ProjectFunction(torch.autograd.Function):
         d = [torch.empty(a.shape, dtype=dtype) for a in ctx.arrays]
         grads = (g_means2d, g_conics, g_depths, g_colors, g_normals, g_ray_coeffs, g_ray_offsets, g_bounds)
         kmat, w2c, kinv, cam_center = ctx.camera
-        with _scheduling():
+        with numba_scheduling():
             _backward_kernel(
                 means, quats, scales, colors, ctx.degree, w2c, kmat, kinv, cam_center, *ctx.scalars,
                 *(_np(g.to(dtype)) for g in grads), *(t.numpy() for t in d),
