@@ -151,7 +151,29 @@ class FilterConfig:
 
 @dataclass
 class DensifyConfig:
-    """Module Dense: schedule and seeding."""
+    """Module Dense: schedule and seeding (docs/patchmatch.md).
+
+    Attributes:
+        enabled: run Dense at all.
+        start_iter, end_iter, interval: Dense runs at the iterations ``start_iter <= it <=
+            end_iter`` with ``it % interval == 0`` (the paper's 1k-7k every 100).
+        stride: seeds on every ``stride``-th pixel each way.
+        max_new_per_call: at most this many new Gaussians a call (a random subset).
+        initial_opacity: the seeded Gaussians' opacity.
+        alpha_threshold: rendered alpha below which a pixel is a hole (seeded); above it a source
+            view's rendered depth serves the consistency filters.
+        seed_relative_depth: |rendered - PatchMatch depth| / PatchMatch depth above which the
+            rendered surface counts as wrong.
+        seed_max_plane_deviation: seeds only where the 3x3 neighbours' PatchMatch depths stay on
+            the pixel's PatchMatch plane within this fraction of its depth (occlusion edges fail);
+            None: no such test.
+        seed_behind_surface: also seed where PatchMatch's depth lies *behind* an opaque rendered
+            surface. Off by default: the seed would be hidden in its own view, and on a glossy
+            surface PatchMatch matches the mirror image behind it (docs/patchmatch.md "Seeding").
+        thin_scale_ratio: a seed's scale along its normal, as a fraction of its tangent scales.
+        use_view_mask: PatchMatch only inside the view's object mask, where it has one.
+        patchmatch, filters: the search and the multi-view consistency filters.
+    """
 
     enabled: bool = True
     start_iter: int = 1000
@@ -163,6 +185,7 @@ class DensifyConfig:
     alpha_threshold: float = 0.5
     seed_relative_depth: float = 0.02
     seed_max_plane_deviation: float | None = 0.04
+    seed_behind_surface: bool = False
     thin_scale_ratio: float = 0.1
     use_view_mask: bool = True
     patchmatch: PatchMatchConfig = field(default_factory=PatchMatchConfig)

@@ -173,7 +173,8 @@ class PolarDensifier:
 
         seeds = seed_mask(keep, result.depth, render.depth, render.alpha,
                           alpha_threshold=cfg.alpha_threshold, relative_depth=cfg.seed_relative_depth,
-                          normal=result.normal, K=view.K.to(dev), max_plane_deviation=cfg.seed_max_plane_deviation)
+                          normal=result.normal, K=view.K.to(dev), max_plane_deviation=cfg.seed_max_plane_deviation,
+                          behind=cfg.seed_behind_surface)
         new = seed_gaussians(
             result.depth, result.normal, view.image.to(dev), view.K, view.world_to_camera, seeds,
             stride=cfg.stride, max_new=cfg.max_new_per_call, initial_opacity=cfg.initial_opacity,

@@ -25,6 +25,7 @@ def seed_mask(
     keep: Tensor, depth: Tensor, rendered_depth: Tensor, rendered_alpha: Tensor, *,
     alpha_threshold: float = 0.5, relative_depth: float = 0.02,
     normal: Tensor | None = None, K: Tensor | None = None, max_plane_deviation: float | None = None,
+    behind: bool = True,
 ) -> Tensor:
     """Filtered pixels where the render has a hole or a wrong surface, on a locally planar depth.
 
@@ -39,12 +40,17 @@ def seed_mask(
             no such test. PatchMatch's patches straddle occlusion edges there and its depth lands
             between the surfaces; the multi-view filters, which compare against the renders, let
             such pixels through (docs/patchmatch.md "Seeding").
+        behind: whether a PatchMatch depth *behind* an opaque rendered surface counts as a wrong
+            surface too. False seeds only holes and where PatchMatch's surface lies in front of
+            the rendered one: behind an opaque surface a seed is hidden in this view, and there
+            PatchMatch on a glossy surface has matched the mirror image of what it reflects.
 
     Returns:
         (1, H, W) bool.
     """
     hole = rendered_alpha < alpha_threshold
-    wrong = (rendered_depth - depth).abs() > relative_depth * depth
+    gap = rendered_depth - depth
+    wrong = (gap.abs() if behind else gap) > relative_depth * depth
     seeds = keep & (depth > 0) & (hole | wrong)
     if max_plane_deviation is not None:
         if normal is None or K is None:
