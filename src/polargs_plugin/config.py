@@ -162,8 +162,8 @@ class DensifyConfig:
         initial_opacity: the seeded Gaussians' opacity.
         alpha_threshold: rendered alpha below which a pixel is a hole (seeded); above it a source
             view's rendered depth serves the consistency filters.
-        seed_relative_depth: |rendered - PatchMatch depth| / PatchMatch depth above which the
-            rendered surface counts as wrong.
+        seed_relative_depth: (rendered - PatchMatch depth) / PatchMatch depth above which the
+            rendered surface counts as wrong (its absolute value with ``seed_behind_surface``).
         seed_max_plane_deviation: seeds only where the 3x3 neighbours' PatchMatch depths stay on
             the pixel's PatchMatch plane within this fraction of its depth (occlusion edges fail);
             None: no such test.
