@@ -101,26 +101,25 @@ def _row_falloffs(falloff, c0, k1, k0, mx, opacity, ulo, uhi):
     falloff[peak - ulo] = f
     step = np.exp(-c0)
     slope = c0 * dx + k1
-    first = last = peak
-    ratio = np.exp(-(slope + 0.5 * c0))
-    g = f
-    for u in range(peak + 1, uhi + 1):
-        g *= ratio
-        if opacity * g < ALPHA_MIN:
-            break
-        falloff[u - ulo] = g
-        last = u
-        ratio *= step
-    ratio = np.exp(slope - 0.5 * c0)
-    g = f
-    for u in range(peak - 1, ulo - 1, -1):
-        g *= ratio
-        if opacity * g < ALPHA_MIN:
-            break
-        falloff[u - ulo] = g
-        first = u
-        ratio *= step
+    last = _sweep(falloff, f, np.exp(-(slope + 0.5 * c0)), step, opacity, peak + 1, uhi + 1, 1, ulo)
+    first = _sweep(falloff, f, np.exp(slope - 0.5 * c0), step, opacity, peak - 1, ulo - 1, -1, ulo)
     return first, last
+
+
+@numba.njit(inline="always")
+def _sweep(falloff, f, ratio, step, opacity, start, stop, direction, ulo):
+    """One way of :func:`_row_falloffs`: from the value ``f`` next to ``start``, exp(-sigma) at
+    the pixels ``range(start, stop, direction)`` (``ratio`` to the first, times ``step`` a pixel)
+    until alpha falls under ALPHA_MIN; returns the last pixel written (``start - direction``: none)."""
+    reached = start - direction
+    for u in range(start, stop, direction):
+        f *= ratio
+        if opacity * f < ALPHA_MIN:
+            break
+        falloff[u - ulo] = f
+        reached = u
+        ratio *= step
+    return reached
 
 
 @numba.njit(inline="always")
