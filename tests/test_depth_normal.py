@@ -52,6 +52,19 @@ def test_gradcheck_and_dispatch():
     assert type(loss.grad_fn).__name__.startswith("_FusedDepthNormal")
 
 
+def test_value_without_gradients_and_scaled_incoming_gradient():
+    """The forward computes the gradient only when one is needed (one pass); the value is the same
+    either way, and the backward scales it by the incoming gradient (here 3, through one input)."""
+    depth, normal, alpha = _inputs(height=11, width=10, seed=3)
+    with torch.no_grad():
+        bare = depth_normal_loss_fused(depth, normal, alpha, K_SKEW)
+    n = normal.clone().requires_grad_()
+    (3 * depth_normal_loss_fused(depth, n, alpha, K_SKEW)).backward()
+    _, _, want = _value_and_grads(_depth_normal_loss_torch, depth, normal, alpha, K_SKEW)
+    assert math.isclose(float(bare), float(_depth_normal_loss_torch(depth, normal, alpha, K_SKEW)), rel_tol=1e-12)
+    assert torch.allclose(n.grad, 3 * want, rtol=1e-12, atol=1e-12 * float(want.abs().max()))
+
+
 def test_analytic_tilted_plane():
     """A fronto-parallel plane (unit normal (0, 0, -1) facing the camera) against a rendered normal
     tilted by 0.3 rad: 1 - cos(0.3) at every valid pixel, whatever alpha."""

@@ -16,9 +16,10 @@ where it and its four neighbours have positive depth (never on the border).
 
 The torch version builds about thirty (3, H, W) intermediates and their autograd graph; here one
 pass per row forms the per-row sums (rows run in parallel; the rows' sums are added in row order,
-so the value does not depend on the thread count), and the backward recomputes each pixel's
-terms, writes the gradients of the two differences, then gathers them into the depth gradient of
-each pixel from its four neighbours (a second pass, so that rows never write to each other).
+so the value does not depend on the thread count). When a gradient will be needed, the same pass
+writes each pixel's gradient terms and the gradients of its two differences, and a second pass
+gathers those into the depth gradient of each pixel from its four neighbours (so that rows never
+write to each other); the backward only scales them by the incoming gradient over the weights' sum.
 Arithmetic is float64 whatever the input dtype; the result has the input's dtype.
 """
 
@@ -90,24 +91,6 @@ def _pixel(depth, normal, u, v, k):
             nx * rn, ny * rn, nz * rn, nn, rn)
 
 
-@numba.njit(parallel=True, cache=True)
-def _forward_kernel(depth, normal, alpha, k, row_loss, row_weight):
-    height, width = depth.shape
-    for v in numba.prange(1, height - 1):
-        acc_loss = 0.0
-        acc_weight = 0.0
-        for u in range(1, width - 1):
-            if not _valid(depth, u, v):
-                continue
-            q = _pixel(depth, normal, u, v, k)
-            w = float(alpha[v, u])
-            cosine = q[12] * q[17] + q[13] * q[18] + q[14] * q[19]
-            acc_loss += w * (1.0 - cosine)
-            acc_weight += w
-        row_loss[v] = acc_loss
-        row_weight[v] = acc_weight
-
-
 @numba.njit(inline="always")
 def _unit_backward(gx, gy, gz, hx, hy, hz, sq, r):
     """Gradient through x -> x / sqrt(max(x.x, eps)) given the unit vector h, x.x and 1/sqrt(.)."""
@@ -132,38 +115,60 @@ def _gather(g_du, g_dv, u, v, c):
     return total
 
 
+@numba.njit(inline="always")
+def _pixel_gradients(q, w, u, v, grad_depth, grad_normal, g_du, g_dv):
+    """Gradients of w (1 - cosine) at one valid pixel (``q`` from :func:`_pixel`): the normal's,
+    the depth's through the scale, and those of the differences d_u and d_v."""
+    (dux, duy, duz, dvx, dvy, dvz, kx, ky, kz, z, z2, scale, ndx, ndy, ndz, cc, rc,
+     nhx, nhy, nhz, nn, rn) = q
+    g_cos = -w
+    gnx, gny, gnz = _unit_backward(g_cos * ndx, g_cos * ndy, g_cos * ndz, nhx, nhy, nhz, nn, rn)
+    grad_normal[0, v, u], grad_normal[1, v, u], grad_normal[2, v, u] = gnx, gny, gnz
+    gcx, gcy, gcz = _unit_backward(g_cos * nhx, g_cos * nhy, g_cos * nhz, ndx, ndy, ndz, cc, rc)
+    g_scale = gcx * kx + gcy * ky + gcz * kz
+    if z2 >= _EPS_DEPTH:
+        grad_depth[v, u] = -2.0 * scale / z * g_scale
+    gkx, gky, gkz = gcx * scale, gcy * scale, gcz * scale
+    # k = d_v x d_u: dL/dd_u = g_k x d_v, dL/dd_v = d_u x g_k.
+    g_du[0, v, u] = gky * dvz - gkz * dvy
+    g_du[1, v, u] = gkz * dvx - gkx * dvz
+    g_du[2, v, u] = gkx * dvy - gky * dvx
+    g_dv[0, v, u] = duy * gkz - duz * gky
+    g_dv[1, v, u] = duz * gkx - dux * gkz
+    g_dv[2, v, u] = dux * gky - duy * gkx
+
+
 @numba.njit(parallel=True, cache=True)
-def _backward_kernel(depth, normal, alpha, k, g_loss, grad_depth, grad_normal, g_du, g_dv):
-    """Pass 1: per valid pixel, the normal's gradient, the depth gradient through the scale, and
-    the gradients of d_u and d_v (zero elsewhere); pass 2: each pixel's depth gradient gathers
+def _kernel(depth, normal, alpha, k, row_loss, row_weight, with_gradient, grad_depth, grad_normal, g_du, g_dv):
+    """Per row, the sums of w (1 - cosine) and of w; with ``with_gradient`` also the gradient of
+    the whole sum sum_p w_p (1 - cosine_p) (not yet divided by the weights' sum) in the same pass:
+    pass 1 writes each valid pixel's normal gradient, its depth gradient through the scale and
+    the gradients of d_u and d_v (zero elsewhere); pass 2 adds to each pixel's depth gradient
     the differences' gradients of its four neighbours."""
     height, width = depth.shape
     for v in numba.prange(height):
+        acc_loss = 0.0
+        acc_weight = 0.0
         for u in range(width):
-            grad_depth[v, u] = 0.0
-            for c in range(3):
-                grad_normal[c, v, u] = 0.0
-                g_du[c, v, u] = 0.0
-                g_dv[c, v, u] = 0.0
+            if with_gradient:
+                grad_depth[v, u] = 0.0
+                for c in range(3):
+                    grad_normal[c, v, u] = 0.0
+                    g_du[c, v, u] = 0.0
+                    g_dv[c, v, u] = 0.0
             if v == 0 or v == height - 1 or u == 0 or u == width - 1 or not _valid(depth, u, v):
                 continue
-            (dux, duy, duz, dvx, dvy, dvz, kx, ky, kz, z, z2, scale, ndx, ndy, ndz, cc, rc,
-             nhx, nhy, nhz, nn, rn) = _pixel(depth, normal, u, v, k)
-            g_cos = -g_loss * float(alpha[v, u])
-            gnx, gny, gnz = _unit_backward(g_cos * ndx, g_cos * ndy, g_cos * ndz, nhx, nhy, nhz, nn, rn)
-            grad_normal[0, v, u], grad_normal[1, v, u], grad_normal[2, v, u] = gnx, gny, gnz
-            gcx, gcy, gcz = _unit_backward(g_cos * nhx, g_cos * nhy, g_cos * nhz, ndx, ndy, ndz, cc, rc)
-            g_scale = gcx * kx + gcy * ky + gcz * kz
-            if z2 >= _EPS_DEPTH:
-                grad_depth[v, u] = -2.0 * scale / z * g_scale
-            gkx, gky, gkz = gcx * scale, gcy * scale, gcz * scale
-            # k = d_v x d_u: dL/dd_u = g_k x d_v, dL/dd_v = d_u x g_k.
-            g_du[0, v, u] = gky * dvz - gkz * dvy
-            g_du[1, v, u] = gkz * dvx - gkx * dvz
-            g_du[2, v, u] = gkx * dvy - gky * dvx
-            g_dv[0, v, u] = duy * gkz - duz * gky
-            g_dv[1, v, u] = duz * gkx - dux * gkz
-            g_dv[2, v, u] = dux * gky - duy * gkx
+            q = _pixel(depth, normal, u, v, k)
+            w = float(alpha[v, u])
+            cosine = q[12] * q[17] + q[13] * q[18] + q[14] * q[19]
+            acc_loss += w * (1.0 - cosine)
+            acc_weight += w
+            if with_gradient:
+                _pixel_gradients(q, w, u, v, grad_depth, grad_normal, g_du, g_dv)
+        row_loss[v] = acc_loss
+        row_weight[v] = acc_weight
+    if not with_gradient:
+        return
     for v in numba.prange(height):
         ry = _ray_y(v, k)
         for u in range(width):
@@ -180,20 +185,26 @@ def _intrinsics(K: Tensor) -> np.ndarray:
 
 
 class _FusedDepthNormal(torch.autograd.Function):
-    """(1, H, W) depth, (3, H, W) normal, (1, H, W) alpha (no gradient), K -> scalar L_dn."""
+    """(1, H, W) depth, (3, H, W) normal, (1, H, W) alpha (no gradient), K -> scalar L_dn.
+
+    When a gradient will be asked for, the forward computes it too (one pass over the pixels
+    instead of two); the backward only scales it by the incoming gradient."""
 
     @staticmethod
     def forward(ctx, depth: Tensor, normal: Tensor, alpha: Tensor, K: Tensor) -> Tensor:
         d = depth.detach()[0].contiguous().numpy()
         n = normal.detach().contiguous().numpy()
         a = alpha.detach()[0].contiguous().numpy()
-        k = _intrinsics(K)
         height = d.shape[0]
         row_loss, row_weight = np.zeros(height), np.zeros(height)
+        with_gradient = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
+        shape = n.shape if with_gradient else (3, 0, 0)
+        grad_depth = np.empty(shape[1:], np.float64)
+        grad_normal, g_du, g_dv = (np.empty(shape, np.float64) for _ in range(3))
         with numba_scheduling():
-            _forward_kernel(d, n, a, k, row_loss, row_weight)
+            _kernel(d, n, a, _intrinsics(K), row_loss, row_weight, with_gradient, grad_depth, grad_normal, g_du, g_dv)
         denominator = max(float(row_weight.sum()), _EPS_WEIGHT)
-        ctx.arrays = (d, n, a, k)
+        ctx.gradients = (grad_depth, grad_normal)
         ctx.denominator = denominator
         ctx.dtype = depth.dtype
         return torch.tensor(float(row_loss.sum()) / denominator, dtype=depth.dtype)
@@ -201,14 +212,10 @@ class _FusedDepthNormal(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: Tensor):
-        d, n, a, k = ctx.arrays
-        grad_depth = np.empty(d.shape, np.float64)
-        grad_normal = np.empty(n.shape, np.float64)
-        g_du, g_dv = np.empty(n.shape, np.float64), np.empty(n.shape, np.float64)
-        with numba_scheduling():
-            _backward_kernel(d, n, a, k, float(grad) / ctx.denominator, grad_depth, grad_normal, g_du, g_dv)
-        return (torch.from_numpy(grad_depth)[None].to(ctx.dtype), torch.from_numpy(grad_normal).to(ctx.dtype),
-                None, None)
+        grad_depth, grad_normal = ctx.gradients
+        scale = float(grad) / ctx.denominator
+        return (torch.from_numpy(grad_depth * scale)[None].to(ctx.dtype),
+                torch.from_numpy(grad_normal * scale).to(ctx.dtype), None, None)
 
 
 def depth_normal_loss_fused(depth: Tensor, normal: Tensor, alpha: Tensor, K: Tensor) -> Tensor:
