@@ -72,10 +72,10 @@ def test_seed_mask_selects_holes_and_wrong_surfaces_only():
     rendered[0, 2, 3] = 1.8  # an opaque surface 10 % in front of PatchMatch's
     keep[0, 3, 3] = False
     alpha[0, 3, 3] = 0.0  # a hole, but filtered out
-    sel = seed_mask(keep, depth, rendered, alpha, alpha_threshold=0.5, relative_depth=0.02)
+    sel = seed_mask(keep, depth, rendered, alpha, alpha_threshold=0.5, relative_depth=0.02, behind=True)
     assert sel.sum() == 3 and sel[0, 0, 0] and sel[0, 1, 1] and sel[0, 2, 3]
-    # behind=False: no seed behind an opaque rendered surface (a mirror image's depth, say)
-    sel = seed_mask(keep, depth, rendered, alpha, alpha_threshold=0.5, relative_depth=0.02, behind=False)
+    # The default (DensifyConfig's): no seed behind an opaque rendered surface (a mirror image's depth, say)
+    sel = seed_mask(keep, depth, rendered, alpha, alpha_threshold=0.5, relative_depth=0.02)
     assert sel.sum() == 2 and sel[0, 0, 0] and sel[0, 1, 1]
 
 

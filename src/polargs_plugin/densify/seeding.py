@@ -25,7 +25,7 @@ def seed_mask(
     keep: Tensor, depth: Tensor, rendered_depth: Tensor, rendered_alpha: Tensor, *,
     alpha_threshold: float = 0.5, relative_depth: float = 0.02,
     normal: Tensor | None = None, K: Tensor | None = None, max_plane_deviation: float | None = None,
-    behind: bool = True,
+    behind: bool = False,
 ) -> Tensor:
     """Filtered pixels where the render has a hole or a wrong surface, on a locally planar depth.
 
@@ -41,8 +41,8 @@ def seed_mask(
             between the surfaces; the multi-view filters, which compare against the renders, let
             such pixels through (docs/patchmatch.md "Seeding").
         behind: whether a PatchMatch depth *behind* an opaque rendered surface counts as a wrong
-            surface too. False seeds only holes and where PatchMatch's surface lies in front of
-            the rendered one: behind an opaque surface a seed is hidden in this view, and there
+            surface too (``DensifyConfig.seed_behind_surface``, False by default as there). False
+            seeds only holes and where PatchMatch's surface lies in front of the rendered one: behind an opaque surface a seed is hidden in this view, and there
             PatchMatch on a glossy surface has matched the mirror image of what it reflects.
 
     Returns:
