@@ -179,8 +179,7 @@ def _kernel(depth, normal, alpha, k, row_loss, row_weight, with_gradient, grad_d
 
 def _intrinsics(K: Tensor) -> np.ndarray:
     """fx, skew, cx, fy, cy, 1 / fx, 1 / fy (float64)."""
-    K = K.detach().to(device="cpu", dtype=torch.float64)
-    fx, skew, cx, fy, cy = (float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]))
+    (fx, skew, cx), (_, fy, cy) = K.detach().cpu().tolist()[:2]  # one host read; Python floats are float64
     return np.array([fx, skew, cx, fy, cy, 1.0 / fx, 1.0 / fy], np.float64)
 
 
