@@ -42,8 +42,9 @@ def seed_mask(
             such pixels through (docs/patchmatch.md "Seeding").
         behind: whether a PatchMatch depth *behind* an opaque rendered surface counts as a wrong
             surface too (``DensifyConfig.seed_behind_surface``, False by default as there). False
-            seeds only holes and where PatchMatch's surface lies in front of the rendered one: behind an opaque surface a seed is hidden in this view, and there
-            PatchMatch on a glossy surface has matched the mirror image of what it reflects.
+            seeds only holes and where PatchMatch's surface lies in front of the rendered one:
+            behind an opaque surface a seed is hidden in this view, and there PatchMatch on a
+            glossy surface has matched the mirror image of what it reflects.
 
     Returns:
         (1, H, W) bool.
