@@ -68,11 +68,12 @@ def train(views: list[View], iterations: int, config: PolarConfig, num_points: i
         (loss + extra).backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
-        with torch.no_grad():
-            new = hooks.densify(iteration, view, lambda v: render(params, v), state_from_raw(params), render=out)
-            if new is not None:  # Dense: append with zero Adam moments, the step kept
-                append_rows(params, optimizer, raw_from_new(new, params["sh_rest"].shape[1], like=params["means"]))
-                appended += len(new)
+        if hooks.densify_due(iteration):  # Dense's schedule: no state is built off it
+            with torch.no_grad():
+                new = hooks.densify(iteration, view, lambda v: render(params, v), state_from_raw(params), render=out)
+                if new is not None:  # Dense: append with zero Adam moments, the step kept
+                    append_rows(params, optimizer, raw_from_new(new, params["sh_rest"].shape[1], like=params["means"]))
+                    appended += len(new)
         if iteration % 50 == 0 or iteration == iterations:
             print(f"it {iteration:5d}  loss {loss.item():.4f}  +polar {extra.item():.4f}  "
                   f"N {params['means'].shape[0]}  appended {appended}", flush=True)

@@ -323,6 +323,9 @@ class _StubHooks:
     def __init__(self, new: NewGaussians, at: int):
         self.new, self.at, self.seen = new, at, []
 
+    def densify_due(self, iteration):
+        return True
+
     def densify(self, iteration, view, render_fn, gaussians, render=None):
         self.seen.append((iteration, gaussians.num, render))
         return self.new if iteration == self.at else None

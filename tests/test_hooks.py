@@ -209,6 +209,24 @@ def test_densify_delegation_normal_loss_and_state(monkeypatch):
     assert resumed.state_dict() == state
 
 
+def test_densify_due_follows_the_dense_schedule():
+    from polargs_plugin.data.synthetic import generate_scene
+
+    views = generate_scene("glossy_plane_sphere", num_views=3, width=24, height=24).views
+    cfg = _config()
+    cfg.densify.enabled = True
+    cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 10, 30, 10
+    hooks = PolarHooks(cfg)
+    assert not hooks.densify_due(10)  # no densifier before preprocess
+    hooks.preprocess(views)
+    assert [it for it in range(1, 41) if hooks.densify_due(it)] == [10, 20, 30]
+    assert hooks.densify(15, views[0], lambda v: _render(), _gaussians()) is None
+    cfg.densify.enabled = False
+    off = PolarHooks(cfg)
+    off.preprocess(views)
+    assert not any(off.densify_due(it) for it in range(1, 41))
+
+
 def test_consistency_filter_uses_config_and_maps():
     from polargs_plugin.data.synthetic import generate_scene
     from polargs_plugin.densify.filters import consistency_filter

@@ -141,11 +141,12 @@ def test_checkpoint_errors_name_the_file(views, tmp_path):
 class RecordingHooks:
     """Fake PolarHooks recording the calls and the state of training at each call."""
 
-    def __init__(self, trainer_ref: list, extra: float = 5.0, append_at: int = 3):
+    def __init__(self, trainer_ref: list, extra: float = 5.0, append_at: int = 3, not_due: tuple[int, ...] = ()):
         self.events: list[tuple] = []
         self.trainer_ref = trainer_ref
         self.extra = extra
         self.append_at = append_at
+        self.not_due = not_due
         self.loaded = None
 
     def preprocess(self, views):
@@ -160,6 +161,9 @@ class RecordingHooks:
         # zero-gradient extra term: must change the logged loss but not the optimisation
         extra = self.extra + 0.0 * gaussians.scales.sum() + 0.0 * render.color.sum()
         return extra, {"fake": 1.0}
+
+    def densify_due(self, iteration):
+        return iteration not in self.not_due
 
     def densify(self, iteration, view, render_fn, gaussians, render=None):
         model = self.trainer_ref[0].model
@@ -228,6 +232,16 @@ def test_hooks_called_in_order_at_the_right_points(views, tmp_path):
     assert again.model.num == n0 + 2
     with pytest.raises(PolarInputError, match="with hooks"):
         Trainer(views, cfg).load_checkpoint(tmp_path / "h.pt")
+
+
+def test_densify_is_not_called_where_it_is_not_due(views):
+    ref: list = []
+    hooks = RecordingHooks(ref, not_due=(2, 3))
+    ref.append(trainer := Trainer(views, _config(iterations=4, schedule_scale=1.0), hooks=hooks))
+    n0 = trainer.model.num
+    trainer.train()
+    assert [(e[0], e[1]) for e in hooks.events[1:] if e[0] == "densify"] == [("densify", 1), ("densify", 4)]
+    assert trainer.model.num == n0  # iteration 3, where the fake appends, was not due
 
 
 def test_hooks_with_zero_gradient_do_not_change_base_training(views):

@@ -236,7 +236,7 @@ class PolarStrategy(Strategy):
         self.inner.step_post_backward(params, optimizers, state, step, info, **inner_kwargs)
 
         view = view if view is not None else info.get("polar_view")
-        if view is None or self.hooks is None:
+        if view is None or self.hooks is None or not self.hooks.densify_due(step + 1):
             return None
         render = render if render is not None else info.get("polar_render")
         render_fn = render_fn or info.get("polar_render_fn") or self.render_fn or _missing_render_fn

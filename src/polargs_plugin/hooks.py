@@ -357,6 +357,12 @@ class PolarHooks:
         return cfg.use_normal and self._normal_targets_fresh(iteration) and self.normal_target(view_name) is not None
 
     # -------------------------------------------------------------------------------- densify
+    def densify_due(self, iteration: int) -> bool:
+        """Whether :meth:`densify` runs Dense at ``iteration`` (Dense on and the iteration on its
+        schedule, ``config.densify``); elsewhere it returns None, so a trainer can skip the call
+        and the Gaussians' state it would build for it."""
+        return self._densifier is not None and self._densifier.should_run(iteration)
+
     def densify(
         self,
         iteration: int,

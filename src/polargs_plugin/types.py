@@ -244,7 +244,8 @@ class TrainingHooks(Protocol):
 
     Per iteration, in this order: render; the trainer's own loss; :meth:`loss` (added before
     ``backward``); ``backward``; optimizer step; the trainer's own density control; then, under
-    ``no_grad``, :meth:`densify`, whose Gaussians the trainer appends with their optimizer state.
+    ``no_grad``, :meth:`densify` where :meth:`densify_due`, whose Gaussians the trainer appends with
+    their optimizer state.
     """
 
     def preprocess(self, views: list[View]) -> Any:
@@ -253,6 +254,11 @@ class TrainingHooks(Protocol):
 
     def loss(self, iteration: int, view: View, render: RenderOut, gaussians: GaussianState) -> tuple[Tensor, dict]:
         """``(extra loss to add before backward, logs)`` for ``view`` rendered as ``render``."""
+        ...
+
+    def densify_due(self, iteration: int) -> bool:
+        """Whether :meth:`densify` may return Gaussians at ``iteration``; where it is False a
+        trainer skips the call and what it would build for it (the Gaussians' state, a render)."""
         ...
 
     def densify(

@@ -247,6 +247,8 @@ class InriaAdapter:
     def densify(self, iteration: int, camera: Any, render_pkg: Mapping[str, Any] | None = None) -> int:
         """Dense after the optimizer step (1-based iteration): appends through the trainer's
         ``densification_postfix``; returns how many Gaussians were appended."""
+        if not self.hooks.densify_due(iteration):  # off Dense's schedule: no state, no render conversion
+            return 0
         with torch.no_grad():
             view = self._view(camera)
             render = None

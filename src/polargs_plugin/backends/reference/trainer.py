@@ -11,7 +11,8 @@ One iteration (1-based, as in vanilla 3DGS ``train.py``):
 4. **loss hook**: ``extra, logs = hooks.loss(it, view, render, gaussians)``; ``loss += extra``;
 5. ``backward()``; densification statistics; Adam step;
 6. under ``no_grad``: vanilla density control, then the **densify hook**
-   ``hooks.densify(it, view, render_fn, gaussians)`` whose result is appended.
+   ``hooks.densify(it, view, render_fn, gaussians)`` where ``hooks.densify_due(it)``, whose result
+   is appended.
 
 With ``hooks=None`` no PolarGS code runs at all: that is the Base of every ablation.
 ``hooks.preprocess(views)`` runs once before the first iteration.
@@ -155,7 +156,7 @@ class Trainer:
         views: training views (``view.image`` = s0 / 2 is the colour target; mono images are
             repeated to RGB).
         config: settings (default :class:`TrainConfig`).
-        hooks: an object with ``preprocess / loss / densify / state_dict / load_state_dict``
+        hooks: an object with ``preprocess / loss / densify_due / densify / state_dict / load_state_dict``
             (e.g. ``PolarHooks``), or None for plain 3DGS.
         init_points: optional ((N, 3) points, (N, 3) colours in [0, 1]), e.g. SfM points.
             Default: points on the visual hull of the masks (:func:`init_points_from_masks`).
@@ -283,7 +284,7 @@ class Trainer:
 
         with torch.no_grad():
             refined = self.density.step(model, it)
-            if self.hooks is not None:
+            if self.hooks is not None and self.hooks.densify_due(it):
                 new = self.hooks.densify(it, view, self.render, model.state(), render=_detached(render))
                 if new is not None and len(new) > 0:
                     model.append(new)
