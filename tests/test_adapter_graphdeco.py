@@ -123,6 +123,9 @@ def test_fifty_steps_lower_the_loss_and_append_with_consistent_state(scene, vers
     cameras = trainer_scene.getTrainCameras()
     background = torch.zeros(3)
     losses, appended = [], 0
+    called = []  # hooks.densify runs only where Dense is due (no state built elsewhere)
+    densify = adapter.hooks.densify
+    adapter.hooks.densify = lambda it, *args, **kwargs: (called.append(it), densify(it, *args, **kwargs))[1]
     for iteration in range(1, 51):  # the shape of graphdeco's train.py loop
         camera = cameras[(iteration * 3) % len(cameras)]
         render_pkg = inria.render(camera, model, None, background)
@@ -138,6 +141,7 @@ def test_fifty_steps_lower_the_loss_and_append_with_consistent_state(scene, vers
         losses.append(float(loss))
     assert sum(losses[-10:]) < 0.8 * sum(losses[:10])
     assert appended > 0 and adapter.appended == appended
+    assert called and len(called) < 50 and called == [it for it in range(1, 51) if adapter.hooks.densify_due(it)]
     n = model.get_xyz.shape[0]
     assert n == 400 + appended
     for group in model.optimizer.param_groups:

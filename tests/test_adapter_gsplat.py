@@ -320,11 +320,11 @@ def test_mcmc_composition_pads_nothing_and_respects_cap(scene, mcmc_on_cpu):
 class _StubHooks:
     """Duck-typed hooks: densify returns a fixed NewGaussians at one iteration."""
 
-    def __init__(self, new: NewGaussians, at: int):
-        self.new, self.at, self.seen = new, at, []
+    def __init__(self, new: NewGaussians, at: int, not_due: tuple[int, ...] = ()):
+        self.new, self.at, self.seen, self.not_due = new, at, [], not_due
 
     def densify_due(self, iteration):
-        return True
+        return iteration not in self.not_due
 
     def densify(self, iteration, view, render_fn, gaussians, render=None):
         self.seen.append((iteration, gaussians.num, render))
@@ -404,6 +404,9 @@ def test_append_keeps_frozen_params_and_extra_rows_and_passes_render():
     assert hooks.seen[-1][2] == "R"
     strategy.step_post_backward(params, optimizers, state, 1, {}, view=marker, render="S")
     assert hooks.seen[-1][0] == 2 and hooks.seen[-1][2] == "S"
+    hooks.not_due, hooks.at, count = (3,), 3, len(params["means"])  # 3 would append, but is not due
+    assert strategy.step_post_backward(params, optimizers, state, 2, {}, view=marker, render="S") is None
+    assert hooks.seen[-1][0] == 2 and len(params["means"]) == count
 
 
 def test_rows_from_new_simple_trainer_appearance_colors():
