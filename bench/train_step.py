@@ -19,9 +19,12 @@ take turns, ``--rounds`` times, so that load changes on a shared machine hit all
   ``hooks_over_base`` (both pay alike for sharing the process);
 - reference: today's step as it was before issue 9, inside this package (kornia's SSIM, the torch
   projection with its autograd graph, a float() of every figure and an MSE every step,
-  boolean-indexed density statistics), SH 1; with ``--reference-src DIR`` also the package as it
-  was before issue 9 (``git archive bfaaf45 src | tar -x -C DIR``), first in every round: the
-  ``speedup_vs_reference`` figure;
+  boolean-indexed density statistics), SH 1;
+- turns (with ``--reference-src DIR``, the package as it was before issue 9: ``git archive bfaaf45
+  src | tar -x -C DIR``), first in every round: its Base step and this package's (SH 1), each in a
+  worker process of its own, taking turns block by block, only one running at a time (the other
+  sleeps in ``read``): the ``speedup_vs_reference`` figure, a median over the block pairs like the
+  ratios within a group (without ``--reference-src``: the legacy step's mean over the Base step's);
 - dense: one Dense call (all PatchMatch rounds, filters, seeding) on this scene, after a warm-up
   call; its share of a whole run with the paper's window (61 calls: 1k-7k every 100, or the CPU
   preset's 500-3500 every 50): ``61 t_dense / (iterations t_hooks + 61 t_dense)`` for
@@ -349,29 +352,40 @@ def _measure_dense(args, views, params) -> dict:
             "appended": statistics.fmean(d[2] for d in dense)}
 
 
-def worker_old(args) -> dict:
-    """The Base step (SH 1) of the package as it was before issue 9, imported from
-    ``--reference-src`` (e.g. ``git archive bfaaf45 src | tar -x -C DIR``): today's step exactly,
-    kornia SSIM, torch projection and old compositing included. Same warm Gaussians, same
-    environment (thread counts, wait policy) as the other workers."""
+def worker_turns(args) -> dict:
+    """The Base step (SH 1) in blocks of ``--block`` steps, one block for each line read from
+    stdin (one JSON line of the block's wall and CPU seconds written back), until stdin closes.
+    Two of these take turns (:func:`_take_turns`): this package's and, with ``--reference-src``,
+    the package as it was before issue 9 (``git archive bfaaf45 src | tar -x -C DIR``: today's
+    step exactly, kornia SSIM, torch projection and old compositing included). Same warm
+    Gaussians, same environment (thread counts, wait policy); the one waiting sleeps in ``read``."""
     import polargs_plugin
 
-    if not str(Path(polargs_plugin.__file__)).startswith(str(Path(args.reference_src).resolve())):
+    old = bool(args.reference_src)
+    if old and not str(Path(polargs_plugin.__file__)).startswith(str(Path(args.reference_src).resolve())):
         raise SystemExit(f"reference worker imported {polargs_plugin.__file__}, not {args.reference_src}")
+    if not old:
+        _policy(args).apply()
     views = _scene(args).views
     params = _warm_params(args, views, Path(args.tmp) / "warm.pt")
-    trainer = _trainer(args, views, params, 1, policy=False)
+    trainer = _trainer(args, views, params, 1, policy=not old)
     for _ in range(3):  # JIT and allocator warm-up
         trainer.step()
-    trainer = _trainer(args, views, params, 1, policy=False)
+    trainer = _trainer(args, views, params, 1, policy=not old)
+    print(json.dumps({"ready": True}), flush=True)
     walls, cpus = [], []
-    for _ in range(args.steps):
-        wall, cpu = time.perf_counter(), time.process_time()
-        trainer.step()
-        walls.append(time.perf_counter() - wall)
-        cpus.append(time.process_time() - cpu)
+    for _ in sys.stdin:
+        block_walls, block_cpus = [], []
+        for _ in range(args.block):
+            wall, cpu = time.perf_counter(), time.process_time()
+            trainer.step()
+            block_walls.append(time.perf_counter() - wall)
+            block_cpus.append(time.process_time() - cpu)
+        walls += block_walls
+        cpus += block_cpus
+        print(json.dumps({"wall": statistics.fmean(block_walls), "cpu": statistics.fmean(block_cpus)}), flush=True)
     return {"wall": statistics.fmean(walls), "cpu": statistics.fmean(cpus), "median": statistics.median(walls),
-            "package": str(Path(polargs_plugin.__file__).parent)}
+            "package": str(Path(polargs_plugin.__file__).parent), "peak_rss_mib": _rss_mib()}
 
 
 def worker_loop(args) -> dict:
@@ -418,9 +432,6 @@ def _run_workers(args, mode: str, count: int, options: list[str] | None = None) 
     start_at = time.time() + (45 if count > 1 else 0)  # side by side: both start measuring together
     env = _worker_env(args)
     extra = (["--start-at", str(start_at)] if count > 1 else []) + (options or [])
-    if mode == "old":  # the old package first on the path; this file's helpers still import from it
-        env["PYTHONPATH"] = os.pathsep.join([str(Path(args.reference_src).resolve()), env.get("PYTHONPATH", "")])
-        extra += ["--reference-src", str(Path(args.reference_src).resolve() / "polargs_plugin")]
     procs = [subprocess.Popen(_worker_cmd(args, mode, extra),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
              for _ in range(count)]
@@ -432,6 +443,53 @@ def _run_workers(args, mode: str, count: int, options: list[str] | None = None) 
             raise SystemExit(f"worker {mode} failed ({p.returncode})")
         results.append(json.loads(out.strip().splitlines()[-1]))
     return results
+
+
+def _take_turns(args) -> dict:
+    """This package's Base step and the package's before issue 9 (``--reference-src``), each in a
+    worker process of its own (:func:`worker_turns`), taking turns block by block, the reference
+    first in each pair: only one of them runs at any time, and a pair of blocks sees the same
+    machine speed. Returns each worker's blocks (mean wall seconds) and summary."""
+    source = Path(args.reference_src).resolve()
+    env_new = _worker_env(args)
+    # The old package first on the path; this file's helpers still import from it.
+    env_old = dict(env_new, PYTHONPATH=os.pathsep.join([str(source), env_new.get("PYTHONPATH", "")]))
+    commands = {"reference": (_worker_cmd(args, "turns", ["--reference-src", str(source / "polargs_plugin")]), env_old),
+                "base": (_worker_cmd(args, "turns"), env_new)}
+    with tempfile.TemporaryFile("w+") as err_reference, tempfile.TemporaryFile("w+") as err_base:
+        errors = {"reference": err_reference, "base": err_base}
+        procs = {name: subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=errors[name],
+                                        text=True, env=env)
+                 for name, (cmd, env) in commands.items()}
+
+        def answer(name: str) -> dict:
+            line = procs[name].stdout.readline()
+            if not line:
+                procs[name].wait()
+                errors[name].seek(0)
+                sys.stderr.write(errors[name].read())
+                raise SystemExit(f"worker turns ({name}) failed ({procs[name].returncode})")
+            return json.loads(line)
+
+        try:
+            for name in procs:
+                answer(name)  # ready: warmed up
+            blocks: dict[str, list[float]] = {name: [] for name in procs}
+            for _ in range(max(1, args.steps // args.block)):
+                for name, proc in procs.items():
+                    proc.stdin.write("block\n")
+                    proc.stdin.flush()
+                    blocks[name].append(answer(name)["wall"])
+            summaries = {}
+            for name, proc in procs.items():
+                proc.stdin.close()
+                summaries[name] = answer(name)
+                proc.wait()
+        finally:
+            for proc in procs.values():
+                if proc.poll() is None:
+                    proc.kill()
+    return {"blocks": blocks, "summaries": summaries}
 
 
 def paired_ratio(blocks: list[float], reference_blocks: list[float]) -> float:
@@ -450,13 +508,15 @@ def paired_ratio(blocks: list[float], reference_blocks: list[float]) -> float:
 
 def _measure_groups(args) -> tuple[list[dict], dict]:
     """Every group of GROUPS in a worker of its own, ``--rounds`` times in turn (with the package
-    before issue 9 first in each round), then one Dense worker. Returns the reference runs and, per
-    part, the mean wall / CPU time and the median over the rounds, plus the workers' details."""
-    old, runs, num_gaussians, rss = [], {}, {}, []
+    before issue 9 and this one taking turns first in each round, :func:`_take_turns`), then one
+    Dense worker. Returns the rounds of turns and, per part, the mean wall / CPU time and the
+    median over the rounds, plus the workers' details."""
+    turns, runs, num_gaussians, rss = [], {}, {}, []
     threads = torch_projection = None
     for _ in range(args.rounds):
         if args.reference_src:
-            old += _run_workers(args, "old", 1)
+            turns.append(_take_turns(args))
+            rss += [summary["peak_rss_mib"] for summary in turns[-1]["summaries"].values()]
         for index, group in enumerate(GROUPS):
             out = _run_workers(args, "measure", 1, ["--group", str(index)])[0]
             for name in group:
@@ -472,7 +532,7 @@ def _measure_groups(args) -> tuple[list[dict], dict]:
         m[name]["blocks"] = [block for r in rs for block in r["blocks"]]  # in order, round after round
     m.update(dense=dense["dense"], threads=threads, num_gaussians=num_gaussians,
              reference_torch_projection=torch_projection, peak_rss_mib=max(rss + [dense["peak_rss_mib"]]))
-    return old, m
+    return turns, m
 
 
 def _prepare_warm(args) -> None:
@@ -538,9 +598,9 @@ def main() -> int:
                         help="only check the new step against the old one over N iterations (TrainConfig.cpu)")
     parser.add_argument("--reference-src", metavar="DIR",
                         help="the package before issue 9 (DIR/polargs_plugin, e.g. from `git archive bfaaf45 src`): "
-                        "its Base step is timed before and after the other parts and is the reference of "
-                        "speedup_vs_reference (without it, the in-process legacy step is)")
-    parser.add_argument("--worker", choices=("prepare", "measure", "loop", "old"), help=argparse.SUPPRESS)
+                        "its Base step and this package's take turns block by block in two worker processes, "
+                        "the pairs give speedup_vs_reference (without it, the in-process legacy step is the reference)")
+    parser.add_argument("--worker", choices=("prepare", "measure", "loop", "turns"), help=argparse.SUPPRESS)
     parser.add_argument("--tmp", help=argparse.SUPPRESS)
     parser.add_argument("--start-at", type=float, default=0.0, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -556,7 +616,7 @@ def main() -> int:
             _warm_params(args, _scene(args).views, Path(args.tmp) / "warm.pt")
             print(json.dumps({"ok": True}))
         else:
-            work = {"measure": worker_measure, "loop": worker_loop, "old": worker_old}[args.worker]
+            work = {"measure": worker_measure, "loop": worker_loop, "turns": worker_turns}[args.worker]
             print(json.dumps(work(args)))
         return 0
     if args.equivalence:
@@ -578,7 +638,7 @@ def main() -> int:
             print(json.dumps({"contention_slowdown": slowdown, "contention_cpu_slowdown": cpu, "alone": alone,
                               "pair": pair, "load_before": load_before, "load_after": _load()}))
             return 0
-        old, m = _measure_groups(args)
+        turns, m = _measure_groups(args)
         contention = None
         if not args.no_contention:
             alone = _run_workers(args, "loop", 1)[0]
@@ -593,15 +653,21 @@ def main() -> int:
                                      if contention else []))
     single_rss = contention["alone"]["peak_rss_mib"] if contention else m["peak_rss_mib"]
     paired = lambda part, reference: paired_ratio(m[part]["blocks"], m[reference]["blocks"])  # noqa: E731
+    # The reference's and this package's Base step taking turns (with --reference-src), block by block.
+    turn_blocks = {name: [b for t in turns for b in t["blocks"][name]] for name in ("reference", "base")}
+    turn_means = {name: statistics.fmean(turn_blocks[name]) for name in turn_blocks} if turns else {}
     figures = {
         "step_over_raster": paired("base1", "raster1"),
         "step_over_raster_sh3": paired("base3", "raster3"),
-        "speedup_vs_reference": (statistics.fmean(o["wall"] for o in old) if old else wall("reference1")) / wall("base1"),
+        "speedup_vs_reference": (paired_ratio(turn_blocks["reference"], turn_blocks["base"]) if turns
+                                 else wall("reference1") / wall("base1")),
         "speedup_vs_legacy_step": wall("reference1") / wall("base1"),
         "hooks_over_base": paired("hooks1", "base1h"),
         "ratios_of_means": {"step_over_raster": wall("base1") / wall("raster1"),
                             "step_over_raster_sh3": wall("base3") / wall("raster3"),
-                            "hooks_over_base": wall("hooks1") / wall("base1h")},
+                            "hooks_over_base": wall("hooks1") / wall("base1h"),
+                            "speedup_vs_reference": (turn_means["reference"] / turn_means["base"] if turns
+                                                     else wall("reference1") / wall("base1"))},
         "dense_share": share,
         "contention_slowdown": contention["slowdown"] if contention else None,
         "contention_cpu_slowdown": contention["cpu_slowdown"] if contention else None,
@@ -613,7 +679,8 @@ def main() -> int:
         "threads": m["threads"],
         "num_gaussians": m["num_gaussians"]["base1"],
         "reference_torch_projection": m["reference_torch_projection"],
-        "reference_package": old[0]["package"] if old else None,
+        "reference_package": turns[0]["summaries"]["reference"]["package"] if turns else None,
+        "turns_seconds": {name: round(value, 5) for name, value in turn_means.items()},
         "load_before": load_before,
         "block": args.block,
         "load_after": _load(),
@@ -633,9 +700,11 @@ def main() -> int:
             ("raster3", "rasterizer fwd+bwd alone, SH 3"), ("base3", "Base step, SH 3")]
     for key, label in rows:
         print(f"{label:44s} {m[key]['wall']:8.4f} {m[key]['cpu']:9.4f} {m[key]['median']:8.4f}")
-    for i, o in enumerate(old):
-        print(f"{'package before issue 9, Base step, SH 1 (' + ('before' if i == 0 else 'after') + ')':44s} "
-              f"{o['wall']:8.4f} {o['cpu']:9.4f} {o['median']:8.4f}")
+    for name, label in (("reference", "package before issue 9, Base step, SH 1 [2]"), ("base", "Base step taking turns with it, SH 1 [2]")):
+        if turns:
+            summaries = [t["summaries"][name] for t in turns]
+            print(f"{label:44s} {turn_means[name]:8.4f} {statistics.fmean(x['cpu'] for x in summaries):9.4f} "
+                  f"{statistics.fmean(x['median'] for x in summaries):8.4f}")
     print(f"{'one Dense call (PatchMatch, filters, seeding)':44s} {t_dense:8.3f} {m['dense']['cpu']:9.3f} "
           f"({m['dense']['appended']:.0f} Gaussians appended)")
     if contention:
@@ -646,7 +715,7 @@ def main() -> int:
     targets = [
         ("step / raster fwd+bwd (SH 1) [1]", figures["step_over_raster"], "<= 1.5"),
         ("step / raster fwd+bwd (SH 3) [1]", figures["step_over_raster_sh3"], "<= 1.5"),
-        ("today's step / Base step" + (" (package before issue 9)" if old else " (legacy step)"),
+        ("today's step / Base step" + (" (package before issue 9) [2]" if turns else " (legacy step)"),
          figures["speedup_vs_reference"], ">= 4"),
         ("hooks step / Base step [1]", figures["hooks_over_base"], "<= 1.15"),
         (f"Dense share of a {args.iterations}-iteration run", figures["dense_share"], "<= 0.25"),
@@ -659,6 +728,9 @@ def main() -> int:
     means = figures["ratios_of_means"]
     print("[1] median over adjacent block pairs (paired_ratio); the ratios of the means over the whole run: "
           f"{means['step_over_raster']:.3f}, {means['step_over_raster_sh3']:.3f}, {means['hooks_over_base']:.3f}")
+    if turns:
+        print("[2] two worker processes taking turns block by block, one running at a time; median over the "
+              f"block pairs (paired_ratio); the ratio of the means: {means['speedup_vs_reference']:.3f}")
     figures["bench_seconds"] = round(time.perf_counter() - started, 1)
     print(json.dumps(figures))
     return 0

@@ -116,6 +116,37 @@ def test_ablation_switches_and_schedule():
         PolarHooks(_config()).loss(0, view, _render(), _gaussians())
 
 
+def test_depth_normal_term_takes_the_plane_depth_when_the_render_has_one():
+    """L_dn on a fronto-parallel plane with normals facing the camera is 0 with ``depth``; a render
+    that also carries a tilted ``plane_depth`` gets L_dn of that plane (1 - cos(tilt)), its
+    gradient goes to ``plane_depth`` and none to ``depth``; a mis-shaped one is named."""
+    import math
+
+    view = _view()
+    hooks = PolarHooks(_config(use_ref=False, use_scale=False))
+    hooks.preprocess([view])
+    iteration = hooks.config.losses.depth_normal_from_iter
+    K = view.K
+    flat = torch.full((1, H, W), 2.0, requires_grad=True)
+    facing = torch.tensor([0.0, 0.0, -1.0]).view(3, 1, 1).expand(3, H, W).clone()
+    alpha = torch.ones(1, H, W)
+    _, logs = hooks.loss(iteration, view, RenderOut(color=torch.rand(3, H, W), depth=flat, normal=facing, alpha=alpha),
+                         _gaussians())
+    assert float(logs["l_dn"]) == pytest.approx(0.0, abs=1e-7)
+    # The plane z = 2 + tan(tilt) * x_cam: along the ray (rx, ry, 1), z = 2 / (1 - tan(tilt) rx).
+    tilt = 0.25
+    rx = ((torch.arange(W) + 0.5 - K[0, 2]) / K[0, 0]).float().view(1, 1, W).expand(1, H, W)
+    tilted = (2.0 / (1.0 - math.tan(tilt) * rx)).requires_grad_()
+    render = RenderOut(color=torch.rand(3, H, W), depth=flat, normal=facing, alpha=alpha, plane_depth=tilted)
+    extra, logs = hooks.loss(iteration, view, render, _gaussians())
+    assert float(logs["l_dn"]) == pytest.approx(1.0 - math.cos(tilt), rel=1e-4)
+    extra.backward()
+    assert tilted.grad is not None and tilted.grad.abs().sum() > 0 and flat.grad is None
+    render.plane_depth = torch.ones(1, H + 1, W)
+    with pytest.raises(ValueError, match="render.plane_depth"):
+        hooks.loss(iteration, view, render, _gaussians())
+
+
 def test_cache_keyed_by_content(tmp_path, monkeypatch):
     cfg = _config()
     cfg.cache_dir = str(tmp_path)

@@ -61,7 +61,7 @@ def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, heig
     n_pix = pix.shape[0]
     trans = np.ones(n_pix)
     done = np.zeros(n_pix, bool)
-    out = {k: np.zeros((n_pix, c)) for k, c in (("color", 3), ("dsum", 1), ("normal", 3), ("median", 1))}
+    out = {k: np.zeros((n_pix, c)) for k, c in (("color", 3), ("dsum", 1), ("normal", 3), ("median", 1), ("dist", 1))}
     order = np.argsort(means @ R.T[:, 2] + t[2])
     for i in order:
         mu = R @ means[i] + t
@@ -91,11 +91,15 @@ def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, heig
         out["color"] += w[:, None] * colors[i]
         out["normal"] += w[:, None] * normal
         out["dsum"][:, 0] += w * depth
+        out["dist"][:, 0] += w * -(normal @ mu)  # the splat's plane n . x = -d, d = -n . mu
         new_t = np.where(use, trans * (1 - alpha), trans)
         crossing = use & (trans >= 0.5) & (new_t < 0.5)
         out["median"][crossing, 0] = depth[crossing]
         trans = new_t
     alpha = 1 - trans
+    # The blended plane n . x = -d meets the pixel's ray z * (rx, ry, 1) at z = d / -(n . r).
+    cosine = -np.einsum("pi,pi->p", out["normal"], rays)
+    plane = np.where(cosine > 1e-6, out["dist"][:, 0] / np.maximum(cosine, 1e-6), 0.0)
     shape = lambda a: torch.tensor(a.T.reshape(-1, height, width))  # noqa: E731
     return {
         "color": shape(out["color"]),
@@ -103,6 +107,7 @@ def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, heig
         "alpha": shape(alpha[:, None]),
         "depth": shape(np.where(alpha > 0, out["dsum"][:, 0] / np.maximum(alpha, 1e-300), 0.0)[:, None]),
         "median_depth": shape(out["median"]),
+        "plane_depth": shape(plane[:, None]),
         "terminated": shape(done[:, None].astype(np.float64)) > 0,
     }
 
@@ -148,7 +153,7 @@ def test_matches_dense_reference(backend: str, seed: int) -> None:
     out = rasterize(*params, K, w2c, width, height, tile_size=8, backend=backend, background=bg)
     ref = dense_reference(*params, K, w2c, width, height)
     assert ref["terminated"].any()  # the occluder stack exercises the T < 1e-4 rule
-    for name in ("normal", "alpha", "depth", "median_depth"):
+    for name in ("normal", "alpha", "depth", "median_depth", "plane_depth"):
         torch.testing.assert_close(getattr(out, name), ref[name], atol=1e-5, rtol=0, msg=name)
     torch.testing.assert_close(out.color, ref["color"] + (1 - ref["alpha"]) * bg[:, None, None], atol=1e-5, rtol=0)
 
@@ -159,7 +164,7 @@ def test_float32_close_to_float64_reference(backend: str) -> None:
     params, K, w2c = _scene_with_occluders(2, width, height, dtype=torch.float32)
     out = rasterize(*params, K, w2c, width, height, tile_size=8, backend=backend)
     ref = dense_reference(*(p.double() for p in params), K, w2c, width, height)
-    for name in ("color", "normal", "alpha", "depth"):
+    for name in ("color", "normal", "alpha", "depth", "plane_depth"):
         torch.testing.assert_close(getattr(out, name).double(), ref[name], atol=2e-4, rtol=0, msg=name)
 
 

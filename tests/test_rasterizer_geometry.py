@@ -52,6 +52,7 @@ def test_flat_gaussians_render_their_plane(backend: str) -> None:
     covered = out.alpha > 0
     assert covered.float().mean() > 0.3
     torch.testing.assert_close(out.depth[covered], plane_z[covered], atol=1e-5, rtol=0)
+    torch.testing.assert_close(out.plane_depth[covered], plane_z[covered], atol=1e-5, rtol=0)
     opaque = out.alpha > 0.5
     assert opaque.any()
     torch.testing.assert_close(out.median_depth[opaque], plane_z[opaque], atol=1e-5, rtol=0)
@@ -97,6 +98,8 @@ def test_two_layers_median_and_expected_depth(backend: str, front_opacity: float
     expected_depth = (2.0 * weights[0] + 3.0 * weights[1]) / np.maximum(weights[0] + weights[1], 1e-300)
     torch.testing.assert_close(out.median_depth[0], torch.tensor(median), atol=1e-9, rtol=0)
     torch.testing.assert_close(out.depth[0], torch.tensor(expected_depth), atol=1e-9, rtol=0)
+    # Parallel planes facing the camera: the blended plane's depth is the blended z.
+    torch.testing.assert_close(out.plane_depth[0], torch.tensor(expected_depth), atol=1e-9, rtol=0)
     torch.testing.assert_close(out.alpha[0], torch.tensor(1 - trans), atol=1e-12, rtol=0)
     torch.testing.assert_close(out.normal[2], -out.alpha[0])  # both layers face the camera
 

@@ -12,7 +12,7 @@ from test_rasterizer import _camera, _edge_on_gaussian, _look_transform, _random
 
 
 def _outputs(out) -> torch.Tensor:
-    return torch.cat([out.color, out.depth, out.median_depth, out.normal, out.alpha]).reshape(-1)
+    return torch.cat([out.color, out.depth, out.median_depth, out.normal, out.alpha, out.plane_depth]).reshape(-1)
 
 
 @pytest.mark.parametrize("backend", ["torch", "numba"])
@@ -54,12 +54,12 @@ def test_gradcheck_edge_on_splat(backend: str) -> None:
 def test_numba_gradients_match_torch() -> None:
     width, height = 22, 17
     params, K, w2c = _scene_with_occluders(1, width, height)
-    weights = torch.rand(9, height, width, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    weights = torch.rand(10, height, width, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
     grads = {}
     for backend in ("torch", "numba"):
         leaves = [p.clone().requires_grad_(True) for p in params]
         out = rasterize(*leaves, K, w2c, width, height, tile_size=8, backend=backend)
-        (_outputs(out).reshape(9, height, width) * weights).sum().backward()
+        (_outputs(out).reshape(10, height, width) * weights).sum().backward()
         grads[backend] = [p.grad for p in leaves] + [out.means2d.grad]
     for g_torch, g_numba in zip(grads["torch"], grads["numba"]):
         assert g_torch.abs().max() > 0

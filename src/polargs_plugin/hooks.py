@@ -122,7 +122,7 @@ def _check_render(where: str, render: RenderOut, view: View, argument: str = "re
                   fields: Sequence[str] = ("depth", "normal", "alpha")) -> None:
     height, width = view.height, view.width
     shapes = {"color": (3, height, width), "depth": (1, height, width), "normal": (3, height, width),
-              "alpha": (1, height, width)}
+              "alpha": (1, height, width), "plane_depth": (1, height, width)}
     for name in fields:
         _check_shape(where, f"{argument}.{name}", getattr(render, name, None), shapes[name], view)
 
@@ -277,7 +277,9 @@ class PolarHooks:
         Other terms: ``alpha * L_n`` once the densifier holds a PatchMatch normal for this view,
         until ``losses.normal_until_after_dense`` iterations past the Dense window (after it the
         targets are no longer refreshed and go stale while the model improves);
-        ``beta * L_dn`` from ``config.losses.depth_normal_from_iter`` on; ``gamma * L_scale``.
+        ``beta * L_dn`` from ``config.losses.depth_normal_from_iter`` on, on ``render.plane_depth``
+        (the unbiased plane depth, as PGSR) where the renderer gives it, else on ``render.depth``;
+        ``gamma * L_scale``.
         Only the terms switched on at this iteration are computed, from per-view constants built
         at :meth:`preprocess`; nothing here waits for the device (the logs stay tensors).
 
@@ -310,7 +312,8 @@ class PolarHooks:
                 terms.append(cfg.alpha_normal * l_n)
                 logs["l_n"] = l_n.detach()
         if cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter:
-            l_dn = depth_normal_loss(render.depth, render.normal, render.alpha, view.K)
+            depth = render.plane_depth if render.plane_depth is not None else render.depth
+            l_dn = depth_normal_loss(depth, render.normal, render.alpha, view.K)
             terms.append(cfg.beta_depth_normal * l_dn)
             logs["l_dn"] = l_dn.detach()
         if cfg.use_scale:
@@ -336,7 +339,7 @@ class PolarHooks:
         fields = ["color"] if self.config.correction.enabled and cfg.use_ref else []
         geometry = cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter
         if geometry:
-            fields += ["depth", "normal", "alpha"]
+            fields += ["plane_depth" if render.plane_depth is not None else "depth", "normal", "alpha"]
         elif cfg.use_normal and self._normal_targets_fresh(iteration) and self.normal_target(view.name) is not None:
             fields.append("normal")
         _check_render(where, render, view, fields=fields)

@@ -173,6 +173,12 @@ class RenderOut:
         normal: (3, H, W) camera-frame normal, facing the camera (not renormalised).
         alpha: (1, H, W) accumulated opacity.
         median_depth: optional (1, H, W) depth where transmittance crosses 0.5.
+        plane_depth: optional (1, H, W) unbiased plane depth (PGSR): the camera z where each
+            pixel's ray (through its centre, +0.5) meets the plane n . x = -d of the
+            alpha-blended camera-frame normal n and plane distance d (a Gaussian's d is
+            -n_i . mean_cam); 0 where the ray does not meet it. L_dn uses it when given, else
+            ``depth`` (``polargs_plugin.kit.depth_from_plane`` makes it from a renderer's
+            blended distance and normal).
         means2d: optional (N, 2) screen-space means whose .grad drives densification.
         radii: optional (N,) screen-space radius in pixels (0 = not visible).
     """
@@ -182,6 +188,7 @@ class RenderOut:
     normal: Tensor
     alpha: Tensor
     median_depth: Tensor | None = None
+    plane_depth: Tensor | None = None
     means2d: Tensor | None = None
     radii: Tensor | None = None
 

@@ -32,8 +32,8 @@ from .projection import ALPHA_MIN, Projection
 __all__ = ["composite_numba", "tile_lists"]
 
 # Columns of the per-pair gradient rows: means2d 2, conics 3, opacity 1, colour 3, normal 3,
-# ray_coeffs 9, ray_offsets 3, depth_bounds 2.
-_GRAD_COLS = 26
+# ray_coeffs 9, ray_offsets 3, depth_bounds 2, plane distance 1.
+_GRAD_COLS = 27
 _TILES_PER_CHUNK = 4  # tiles handed to a thread at a time: their lists differ a lot in length
 
 
@@ -48,7 +48,7 @@ def _coeffs(ray_coeffs, g):
 
 
 @numba.njit(inline="always")
-def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds):
+def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, distances):
     """Gaussian g's values (its ray coefficients: :func:`_coeffs`) as float64 locals, read once
     before its pixel loop: numba cannot prove that the stores into the pixel state do not alias the
     inputs, and would reload every input at every pixel otherwise."""
@@ -58,7 +58,7 @@ def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth
         float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2]),
         float(normals[g, 0]), float(normals[g, 1]), float(normals[g, 2]),
         float(ray_offsets[g, 0]), float(ray_offsets[g, 1]), float(ray_offsets[g, 2]),
-        float(depth_bounds[g, 0]), float(depth_bounds[g, 1]),
+        float(depth_bounds[g, 0]), float(depth_bounds[g, 1]), float(distances[g]),
     )
 
 
@@ -193,9 +193,9 @@ def _clip_box(boxes, g, u0, v0, tile_size, width, height):
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _forward_kernel(
-    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes,
+    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances, boxes,
     gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
-    out_color, out_depth, out_normal, out_alpha, trans_final, median, last_slot, median_slot,
+    out_color, out_depth, out_normal, out_alpha, out_distance, trans_final, median, last_slot, median_slot,
 ):
     num_tiles = tile_offsets.shape[0] - 1
     for tile in numba.prange(num_tiles):
@@ -207,7 +207,7 @@ def _forward_kernel(
         # Per-pixel state of the tile, pixel p = (v - v0) * tile_size + (u - u0).
         npix = tile_size * tile_size
         trans = np.ones(npix)
-        acc = np.zeros((npix, 7))  # colour 3, depth sum, normal 3
+        acc = np.zeros((npix, 8))  # colour 3, depth sum, normal 3, plane distance
         med_z = np.zeros(npix)
         med_j = np.full(npix, -1, np.int64)
         last = np.full(npix, start, np.int64)
@@ -222,8 +222,8 @@ def _forward_kernel(
             ulo, uhi, vlo, vhi = _clip_box(boxes, g, u0, v0, tile_size, width, height)
             if ulo > uhi or vlo > vhi:
                 continue
-            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
-                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds)
+            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi, dist) = _gaussian(
+                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, distances)
             q = _coeffs(ray_coeffs, g)
             for v in range(vlo, vhi + 1):
                 if row_active[v - v0] == 0:
@@ -257,6 +257,7 @@ def _forward_kernel(
                     acc[p, 4] += w * n0
                     acc[p, 5] += w * n1
                     acc[p, 6] += w * n2
+                    acc[p, 7] += w * dist
                     if tp >= 0.5 and next_t < 0.5:
                         med_z[p] = z
                         med_j[p] = j
@@ -272,6 +273,7 @@ def _forward_kernel(
                 out_normal[0, v, u] = acc[p, 4]
                 out_normal[1, v, u] = acc[p, 5]
                 out_normal[2, v, u] = acc[p, 6]
+                out_distance[0, v, u] = acc[p, 7]
                 out_alpha[0, v, u] = 1.0 - trans[p]
                 trans_final[v, u] = trans[p]
                 median[v, u] = med_z[p]
@@ -281,9 +283,10 @@ def _forward_kernel(
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _backward_kernel(
-    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, boxes,
+    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances, boxes,
     gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
-    trans_final, last_slot, median_slot, grad_color, grad_depth, grad_normal, grad_alpha, grad_median, pair_grads,
+    trans_final, last_slot, median_slot, grad_color, grad_depth, grad_normal, grad_alpha, grad_median,
+    grad_distance, pair_grads,
 ):
     num_tiles = tile_offsets.shape[0] - 1
     for tile in numba.prange(num_tiles):
@@ -295,7 +298,7 @@ def _backward_kernel(
         npix = tile_size * tile_size
         trans = np.ones(npix)
         rest = np.zeros(npix)
-        grads = np.zeros((npix, 8), grad_color.dtype)  # colour 3, depth, normal 3, median (input dtype)
+        grads = np.zeros((npix, 9), grad_color.dtype)  # colour 3, depth, normal 3, median, distance (input dtype)
         last = np.full(npix, start, np.int64)
         med_j = np.full(npix, -1, np.int64)
         row_end = np.full(tile_size, start, np.int64)  # one past the last slot any pixel of the row uses
@@ -309,6 +312,7 @@ def _backward_kernel(
                     grads[p, 4 + c] = grad_normal[c, v, u]
                 grads[p, 3] = grad_depth[0, v, u]
                 grads[p, 7] = grad_median[0, v, u]
+                grads[p, 8] = grad_distance[0, v, u]
                 trans[p] = trans_final[v, u]
                 # alpha_out = 1 - T_final, so the pixel's "rest" term starts at -g_alpha * T_final.
                 rest[p] = -grad_alpha[0, v, u] * trans_final[v, u]
@@ -323,13 +327,13 @@ def _backward_kernel(
             if ulo > uhi or vlo > vhi:
                 pair_grads[j, :] = 0.0
                 continue
-            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi) = _gaussian(
-                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds)
+            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi, dist) = _gaussian(
+                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, distances)
             q = _coeffs(ray_coeffs, g)
             # This pair's gradient, summed in float64 locals (registers, not memory) over the
             # pixels in row-major order and written once (each pair belongs to one tile).
             d_mx = d_my = d_c0 = d_c1 = d_c2 = d_op = 0.0
-            d_col0 = d_col1 = d_col2 = d_n0 = d_n1 = d_n2 = 0.0
+            d_col0 = d_col1 = d_col2 = d_n0 = d_n1 = d_n2 = d_dist = 0.0
             # Depth terms as moments over the pixels (see _ray_gradients): S = sum s p, M = sum s t p p^T.
             s_x = s_y = s_1 = m_xx = m_xy = m_x = m_yy = m_y = m_1 = 0.0
             d_lo = d_hi = 0.0
@@ -360,8 +364,8 @@ def _backward_kernel(
                     tp = trans[p] * keep
                     trans[p] = tp
                     gc0, gc1, gc2, gd = grads[p, 0], grads[p, 1], grads[p, 2], grads[p, 3]
-                    gn0, gn1, gn2 = grads[p, 4], grads[p, 5], grads[p, 6]
-                    fg = col0 * gc0 + col1 * gc1 + col2 * gc2 + n0 * gn0 + n1 * gn1 + n2 * gn2
+                    gn0, gn1, gn2, gdist = grads[p, 4], grads[p, 5], grads[p, 6], grads[p, 8]
+                    fg = col0 * gc0 + col1 * gc1 + col2 * gc2 + n0 * gn0 + n1 * gn1 + n2 * gn2 + dist * gdist
                     # The depth terms only where the pixel's depth or median depth has a gradient
                     # (never in a colour-only loss): skipping them adds nothing but zeros.
                     median_here = j == med_j[p]
@@ -381,6 +385,7 @@ def _backward_kernel(
                     d_n0 += w * gn0
                     d_n1 += w * gn1
                     d_n2 += w * gn2
+                    d_dist += w * gdist
                     if geometric:
                         dz = w * gd
                         if median_here:
@@ -425,7 +430,7 @@ def _backward_kernel(
             row[0], row[1], row[2], row[3], row[4], row[5] = d_mx, d_my, d_c0, d_c1, d_c2, d_op
             row[6], row[7], row[8], row[9], row[10], row[11] = d_col0, d_col1, d_col2, d_n0, d_n1, d_n2
             _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row)
-            row[24], row[25] = d_lo, d_hi
+            row[24], row[25], row[26] = d_lo, d_hi, d_dist
 
 
 @numba.njit(cache=True)
@@ -480,21 +485,23 @@ def _np(x: Tensor) -> np.ndarray:
 
 class _CompositeFunction(torch.autograd.Function):
     """Inputs: means2d, conics, opacities, colours, normals, ray coefficients (N, 9),
-    ray offsets, depth bounds, then the non-differentiable bins, width, height.
-    Outputs: the sums colour (3, H, W), depth (1, H, W), normal (3, H, W), alpha (1, H, W) and
-    the median depth (1, H, W), each its own tensor (no slicing, so no slice backward)."""
+    ray offsets, depth bounds, plane distances (N,), then the non-differentiable bins, width, height.
+    Outputs: the sums colour (3, H, W), depth (1, H, W), normal (3, H, W), alpha (1, H, W), the
+    median depth (1, H, W) and the plane distance sum (1, H, W), each its own tensor (no
+    slicing, so no slice backward)."""
 
     @staticmethod
     def forward(
-        ctx, means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, bins, width, height
+        ctx, means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances, bins,
+        width, height,
     ):
         dtype = means2d.dtype
-        inputs = (means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds)
+        inputs = (means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances)
         arrays = [_np(x.to(dtype)) for x in inputs]
         grid = (_np(bins.gauss_ids), _np(bins.tile_offsets), bins.tiles_x, bins.tile_size, width, height)
         np_dtype = arrays[0].dtype
         # Every pixel belongs to one tile, so the kernel writes every entry of these.
-        outs = tuple(np.empty((c, height, width), np_dtype) for c in (3, 1, 3, 1, 1))  # colour .. median
+        outs = tuple(np.empty((c, height, width), np_dtype) for c in (3, 1, 3, 1, 1, 1))  # colour .. distance
         state = (
             np.empty((height, width), np_dtype),  # final transmittance
             np.empty((height, width), np.int64),  # one past the last contributing list slot
@@ -505,30 +512,33 @@ class _CompositeFunction(torch.autograd.Function):
         with numba_scheduling(chunksize=_TILES_PER_CHUNK):
             _footprint_kernel(arrays[0], arrays[1], arrays[2], width, height, boxes)
             arrays = (*arrays, boxes)
-            _forward_kernel(*arrays, *grid, *outs[:4], state[0], outs[4][0], state[1], state[2])
+            _forward_kernel(*arrays, *grid, *outs[:4], outs[5], state[0], outs[4][0], state[1], state[2])
         ctx.arrays, ctx.grid, ctx.state = arrays, grid, state
         ctx.dtype = dtype
         return tuple(torch.from_numpy(o) for o in outs)
 
     @staticmethod
-    def backward(ctx, grad_color, grad_depth, grad_normal, grad_alpha, grad_median):
+    def backward(ctx, grad_color, grad_depth, grad_normal, grad_alpha, grad_median, grad_distance):
         dtype = ctx.dtype
         gauss_ids = ctx.grid[0]
         pair_grads = np.empty((gauss_ids.shape[0], _GRAD_COLS), np.float64)
-        output_grads = (_np(g.to(dtype)) for g in (grad_color, grad_depth, grad_normal, grad_alpha, grad_median))
+        output_grads = (_np(g.to(dtype)) for g in
+                        (grad_color, grad_depth, grad_normal, grad_alpha, grad_median, grad_distance))
         with numba_scheduling(chunksize=_TILES_PER_CHUNK):
             _backward_kernel(*ctx.arrays, *ctx.grid, *ctx.state, *output_grads, pair_grads)
         grads = np.zeros((ctx.arrays[0].shape[0], _GRAD_COLS), np.float64)
         _sum_pairs(gauss_ids, pair_grads, grads)
         grads = torch.from_numpy(grads).to(dtype)
-        d_means2d, d_conics, d_opac, d_colors, d_normals, d_q, d_b, d_bounds = torch.split(
-            grads, [2, 3, 1, 3, 3, 9, 3, 2], dim=1
+        d_means2d, d_conics, d_opac, d_colors, d_normals, d_q, d_b, d_bounds, d_dist = torch.split(
+            grads, [2, 3, 1, 3, 3, 9, 3, 2, 1], dim=1
         )
-        return d_means2d, d_conics, d_opac[:, 0], d_colors, d_normals, d_q, d_b, d_bounds, None, None, None
+        return (d_means2d, d_conics, d_opac[:, 0], d_colors, d_normals, d_q, d_b, d_bounds, d_dist[:, 0],
+                None, None, None)
 
 
 def composite_numba(
-    proj: Projection, opacities: Tensor, colors: Tensor, bins: TileBins, width: int, height: int
+    proj: Projection, opacities: Tensor, colors: Tensor, bins: TileBins, width: int, height: int,
+    distances: Tensor | None = None,
 ) -> Composite:
     """Composite on CPU with the compiled kernel; same inputs, outputs and rule as ``composite_torch``.
 
@@ -538,14 +548,17 @@ def composite_numba(
         colors: (N, 3) per-Gaussian colours for this view.
         bins: :class:`TileBins` from the same projection.
         width, height: image size.
+        distances: optional (N,) per-Gaussian plane distances, composited like a colour channel.
 
     Returns:
         :class:`Composite`, differentiable through a custom autograd function.
     """
     if proj.means2d.device.type != "cpu":
         raise ValueError(f"composite_numba runs on CPU tensors only, got {proj.means2d.device}")
-    color, depth, normal, alpha, median = _CompositeFunction.apply(
+    plane = proj.depths.new_zeros(proj.depths.shape) if distances is None else distances
+    color, depth, normal, alpha, median, distance = _CompositeFunction.apply(
         proj.means2d, proj.conics, opacities, colors, proj.normals,
-        proj.ray_coeffs.reshape(-1, 9), proj.ray_offsets, proj.depth_bounds, bins, width, height,
+        proj.ray_coeffs.reshape(-1, 9), proj.ray_offsets, proj.depth_bounds, plane, bins, width, height,
     )
-    return Composite(color=color, depth=depth, normal=normal, alpha=alpha, median_depth=median)
+    return Composite(color=color, depth=depth, normal=normal, alpha=alpha, median_depth=median,
+                     distance=None if distances is None else distance)

@@ -54,6 +54,7 @@ class Composite(NamedTuple):
         normal: (3, H, W) sum of weight * normal.
         alpha: (1, H, W) sum of weights = 1 - final transmittance.
         median_depth: (1, H, W) depth of the Gaussian where T first drops below 0.5, else 0.
+        distance: (1, H, W) sum of weight * plane distance, when per-Gaussian distances were given.
     """
 
     color: Tensor
@@ -61,6 +62,7 @@ class Composite(NamedTuple):
     normal: Tensor
     alpha: Tensor
     median_depth: Tensor
+    distance: Tensor | None = None
 
 
 def gaussian_alpha(means2d: Tensor, conics: Tensor, opacities: Tensor, px: Tensor, py: Tensor) -> Tensor:
@@ -151,6 +153,7 @@ def composite_torch(
     bins: TileBins,
     width: int,
     height: int,
+    distances: Tensor | None = None,
     chunk_elems: int = 1 << 21,
     slab: int = 32,
 ) -> Composite:
@@ -162,6 +165,7 @@ def composite_torch(
         colors: (N, 3) per-Gaussian colour for this view.
         bins: :class:`TileBins` from the same projection.
         width, height: image size.
+        distances: optional (N,) per-Gaussian plane distances, composited like a colour channel.
         chunk_elems: bound on the elements of one block of the no-grad pass (pixels x slab).
         slab: list entries a pixel tests per step of the no-grad pass.
 
@@ -186,19 +190,25 @@ def composite_torch(
     weight = (alpha * trans).to(dtype)
     depth = pixel_depth(proj.ray_coeffs[g], proj.ray_offsets[g], proj.depth_bounds[g], px, py)
 
-    values = torch.cat([colors[g], depth[:, None], proj.normals[g], torch.ones_like(depth)[:, None]], dim=-1)
-    sums = torch.zeros(num_pix, 8, dtype=dtype, device=pix.device).index_add(0, pix, weight[:, None] * values)
+    columns = [colors[g], depth[:, None], proj.normals[g], torch.ones_like(depth)[:, None]]
+    if distances is not None:
+        columns.append(distances[g][:, None].to(dtype))
+    values = torch.cat(columns, dim=-1)
+    sums = torch.zeros(num_pix, values.shape[1], dtype=dtype, device=pix.device).index_add(
+        0, pix, weight[:, None] * values
+    )
 
     with torch.no_grad():
         crossing = (trans >= 0.5) & (trans * (1.0 - alpha.double()) < 0.5)
     median = torch.zeros(num_pix, dtype=dtype, device=pix.device).index_add(
         0, pix[crossing], depth[crossing]
     )
-    image = sums.T.reshape(8, height, width)
+    image = sums.T.reshape(values.shape[1], height, width)
     return Composite(
         color=image[0:3],
         depth=image[3:4],
         normal=image[4:7],
         alpha=image[7:8],
         median_depth=median.reshape(1, height, width),
+        distance=image[8:9] if distances is not None else None,
     )

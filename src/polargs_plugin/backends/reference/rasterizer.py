@@ -16,6 +16,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from ...kit.render import depth_from_plane
 from ...types import RenderOut
 from .binning import bin_gaussians
 from .composite_torch import composite_torch
@@ -108,6 +109,11 @@ def rasterize(
           (n . mean_cam < 0, which is n_z < 0 near the optical axis), composited with the
           colour weights, not renormalised;
         - alpha (1, H, W);
+        - plane_depth (1, H, W) PGSR's unbiased plane depth: the camera z where each pixel's
+          ray meets the plane n . x = -d of the composited normal n and plane distance
+          d (each Gaussian's d = -n_i . mean_cam: its plane's distance to the camera centre),
+          0 where the ray does not meet it; exact for flat splats on a plane, and its gradient
+          takes no per-pixel ray-Gaussian depth (L_dn uses it);
         - means2d (N, 2) projected means in pixels; after backward ``.grad`` holds dL/dmeans2d
           (when the inputs require grad);
         - radii (N,) int64 opacity-aware screen radius in pixels (larger half-width of the box
@@ -147,12 +153,14 @@ def rasterize(
         means2d.retain_grad()
 
     bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
+    w2c = world_to_camera.to(means)
+    distances = -(proj.normals * (means @ w2c[:3, :3].T + w2c[:3, 3])).sum(-1)
     if path == "numba":
         from .composite_numba import composite_numba
 
-        comp = composite_numba(proj, opacities, colors, bins, width, height)
+        comp = composite_numba(proj, opacities, colors, bins, width, height, distances)
     else:
-        comp = composite_torch(proj, opacities, colors, bins, width, height)
+        comp = composite_torch(proj, opacities, colors, bins, width, height, distances)
 
     color = comp.color
     if background is not None:
@@ -167,6 +175,7 @@ def rasterize(
         normal=comp.normal,
         alpha=comp.alpha,
         median_depth=comp.median_depth,
+        plane_depth=depth_from_plane(comp.distance, comp.normal, K.to(means), pixel_center=0.5),
         means2d=means2d,
         radii=radii,
     )
