@@ -94,6 +94,9 @@ def test_render_out_of_a_flat_wall_is_in_the_project_conventions() -> None:
     assert covered.float().mean() > 0.3
     torch.testing.assert_close(out.alpha, reference.alpha, atol=1e-5, rtol=0)
     torch.testing.assert_close(out.depth[covered], torch.full_like(out.depth[covered], 2.0), atol=1e-4, rtol=0)
+    # the plane distance rides in the alpha-depth pass's third channel: the same plane depth
+    torch.testing.assert_close(out.plane_depth[covered], torch.full_like(out.depth[covered], 2.0), atol=1e-4, rtol=0)
+    torch.testing.assert_close(out.plane_depth[covered], reference.plane_depth[covered], atol=1e-4, rtol=0)
     expected = torch.tensor([0.0, 0.0, -1.0])[:, None, None] * out.alpha
     torch.testing.assert_close(out.normal, expected, atol=1e-5, rtol=0)
     # graphdeco's own inverse depth gives the same camera z (single layer)

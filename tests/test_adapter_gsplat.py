@@ -196,7 +196,7 @@ def _train(views, params, optimizers, strategy, state, hooks, steps, *, lr_means
             colors, viewmats, Ks, view.width, view.height, sh_degree=None, packed=False,
             backgrounds=polar_backgrounds(torch.zeros(1, 3)),
         )
-        assert render_colors.shape == (1, SIZE, SIZE, 8) and render_alphas.shape == (1, SIZE, SIZE, 1)
+        assert render_colors.shape == (1, SIZE, SIZE, 3 + 6) and render_alphas.shape == (1, SIZE, SIZE, 1)
         strategy.step_pre_backward(params, optimizers, state, step, info)
         loss = photometric_loss(render_colors[0, ..., :3].permute(2, 0, 1), _target(view))
         extra, logs = polar_loss(hooks, step, view, render_colors, render_alphas, info, params)
@@ -429,8 +429,8 @@ def test_render_out_from_gsplat_splits_the_aux_channels(scene):
         params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
         polar_colors(rgb, params, viewmats), viewmats, Ks, SIZE, SIZE, packed=False, render_mode="RGB+ED",
     )
-    assert render_colors.shape[-1] == 3 + 5 + 1
-    out = render_out_from_gsplat(render_colors, render_alphas)
+    assert render_colors.shape[-1] == 3 + 6 + 1
+    out = render_out_from_gsplat(render_colors, render_alphas, K=view.K)
     ref = rasterize(params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
                     rgb, view.K.float(), view.world_to_camera.float(), SIZE, SIZE)
     torch.testing.assert_close(out.color, ref.color, atol=1e-5, rtol=1e-4)
@@ -441,6 +441,8 @@ def test_render_out_from_gsplat_splits_the_aux_channels(scene):
     # depth = sum w z / alpha with z the mean's camera z: gsplat's own "ED" (last channel)
     covered = out.alpha[0] > 1e-3
     torch.testing.assert_close(out.depth[0][covered], render_colors[0, ..., -1][covered], atol=1e-4, rtol=1e-4)
+    # the plane depth of the blended plane distance and normal: the reference's own
+    torch.testing.assert_close(out.plane_depth[0][covered], ref.plane_depth[0][covered], atol=1e-4, rtol=1e-4)
     with pytest.raises(ValueError, match="aux"):
         render_out_from_gsplat(render_colors[..., :3], render_alphas)
 

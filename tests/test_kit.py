@@ -91,7 +91,7 @@ def test_aux_pass_renders_the_contract_maps_of_a_plane() -> None:
     means, quats, scales, opacities, K, w2c = _flat_plane_scene(2.0)
     aux = aux_channels(means, quats, scales, w2c)
     image, reference = _render_channels(means, quats, scales, opacities, K, w2c, aux, 24, 20)
-    out = render_out_from_aux(reference.color, image)
+    out = render_out_from_aux(reference.color, image, K=K)
     covered = out.alpha > 1e-3
     assert covered.float().mean() > 0.9
     torch.testing.assert_close(out.alpha, reference.alpha)
@@ -100,8 +100,11 @@ def test_aux_pass_renders_the_contract_maps_of_a_plane() -> None:
     torch.testing.assert_close(out.normal, expected)
     # the same maps the reference rasterizer computes itself
     torch.testing.assert_close(out.normal, reference.normal)
-    with pytest.raises(ValueError, match=r"aux must be \(5, H, W\)"):
-        render_out_from_aux(reference.color, image[:4])
+    torch.testing.assert_close(out.plane_depth[covered], torch.full_like(out.depth[covered], 2.0))
+    torch.testing.assert_close(out.plane_depth, reference.plane_depth)
+    assert render_out_from_aux(reference.color, image).plane_depth is None  # no K, no plane depth
+    with pytest.raises(ValueError, match=r"aux must be \(6, H, W\)"):
+        render_out_from_aux(reference.color, image[:5])
 
 
 # ------------------------------------------------------------------------------------- depths

@@ -6,7 +6,7 @@ What it translates (docs/adapters/graphdeco.md):
 - render package -> RenderOut: colour = ``render_pkg["render"]`` (exposure-corrected and clamped,
   the image the trainer's L1 sees); graphdeco renders no normal and no alpha, so when the hooks
   need geometry two extra passes of the trainer's own ``render(..., override_color=...)`` with
-  background 0 give the alpha-weighted normal, alpha and depth (``kit.clamped_aux_colors``). Each
+  background 0 give the alpha-weighted normal, alpha, depth and plane depth (``kit.clamped_aux_colors``). Each
   pass makes its own screen-space tensor, so the densification statistics, which train.py reads
   from the main pass's ``viewspace_points``, are untouched. The depth comes from the extra pass
   too, not from the 2024 main pass's inverse depth: gradients of the depth losses through the
@@ -49,7 +49,7 @@ class GraphdecoAdapter(InriaAdapter):
         background = self._background(color)
         normal_image = self.render(camera, g, self.pipe, background, override_color=normal_colors)["render"]
         alpha_depth_image = self.render(camera, g, self.pipe, background, override_color=alpha_depth_colors)["render"]
-        return render_out_from_clamped_aux(color, normal_image, alpha_depth_image, z_scale)
+        return render_out_from_clamped_aux(color, normal_image, alpha_depth_image, z_scale, K=self._view(camera).K)
 
     def _postfix(self, rows: dict[str, Tensor]) -> None:
         g = self.gaussians

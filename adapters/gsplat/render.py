@@ -1,15 +1,15 @@
 """gsplat renders <-> the hooks' :class:`RenderOut` / :class:`GaussianState`; the PolarGS loss.
 
 gsplat 1.5 renders no normals. PolarGS needs a normal, an alpha and a camera-z depth of the
-*same* render whose colour drives the loss, so the trainer appends the five per-Gaussian
-channels of :func:`polargs_plugin.kit.aux_channels` (camera-frame normal, 1, camera z) to its
-colours and renders everything in ONE ``rasterization`` call (``sh_degree=None``: the SH are
-evaluated first, :func:`sh_colors`)::
+*same* render whose colour drives the loss, so the trainer appends the six per-Gaussian
+channels of :func:`polargs_plugin.kit.aux_channels` (camera-frame normal, 1, camera z, plane
+distance) to its colours and renders everything in ONE ``rasterization`` call
+(``sh_degree=None``: the SH are evaluated first, :func:`sh_colors`)::
 
-    colors = polar_colors(sh_colors(params, viewmats, sh_degree), params, viewmats)  # [N, 3 + 5]
+    colors = polar_colors(sh_colors(params, viewmats, sh_degree), params, viewmats)  # [N, 3 + 6]
     render_colors, render_alphas, info = rasterization(
         means, quats, exp(scales), sigmoid(opacities), colors, viewmats, Ks, W, H,
-        sh_degree=None, backgrounds=polar_backgrounds(bg))                        # [1, H, W, 8]
+        sh_degree=None, backgrounds=polar_backgrounds(bg))                        # [1, H, W, 9]
     rgb = render_colors[..., :3]
 
 A second call would give the aux channels a ``means2d`` of their own that the strategy does not
@@ -121,7 +121,8 @@ def polar_colors(colors: Tensor, params: Mapping[str, Tensor], viewmats: Tensor)
         viewmats: (1, 4, 4) or (4, 4) world-to-camera of the rendered camera.
 
     Returns:
-        (N, D + 5): ``[colors, normal (3), 1, camera z]`` (:data:`polargs_plugin.kit.AUX_CHANNELS`).
+        (N, D + 6): ``[colors, normal (3), 1, camera z, plane distance]``
+        (:data:`polargs_plugin.kit.AUX_CHANNELS`).
     """
     aux = aux_channels(params["means"], params["quats"], torch.exp(params["scales"]), _viewmat(viewmats))
     return torch.cat([colors, aux.to(colors)], dim=-1)
@@ -139,20 +140,23 @@ def render_out_from_gsplat(
     render_alphas: Tensor | None = None,
     *,
     rgb_channels: int = 3,
+    K: Tensor | None = None,
 ) -> RenderOut:
     """A :class:`RenderOut` of one gsplat render whose colours carry the aux channels.
 
     Args:
         render_colors: [1, H, W, X] channel-last output of ``rasterization`` with the colours of
-            :func:`polar_colors`: RGB in ``[..., :rgb_channels]``, then the five aux channels
+            :func:`polar_colors`: RGB in ``[..., :rgb_channels]``, then the six aux channels
             (anything after them, e.g. the ``RGB+ED`` depth, is ignored).
         render_alphas: [1, H, W, 1] (shape check only: alpha is the aux channel ``1``, equal to
             it when the aux background is 0).
         rgb_channels: number of colour channels before the aux ones (3).
+        K: (3, 3) intrinsics of the render (the view's): given, the RenderOut has the unbiased
+            plane depth too, which L_dn uses (``polargs_plugin.kit.render_out_from_aux``).
 
     Returns:
-        RenderOut with color (3, H, W) (not clamped), camera-frame normal, alpha and camera-z
-        depth Σwz / Σw, all channel-first and autograd-connected.
+        RenderOut with color (3, H, W) (not clamped), camera-frame normal, alpha, camera-z
+        depth Σwz / Σw and with ``K`` plane depth, all channel-first and autograd-connected.
     """
     if render_colors.dim() != 4 or render_colors.shape[0] != 1:
         raise ValueError(f"render_colors must be [1, H, W, X] (one camera), got {tuple(render_colors.shape)}")
@@ -164,7 +168,7 @@ def render_out_from_gsplat(
     if render_alphas is not None and tuple(render_alphas.shape) != (*render_colors.shape[:3], 1):
         raise ValueError(f"render_alphas must be [1, H, W, 1], got {tuple(render_alphas.shape)}")
     image = render_colors[0].permute(2, 0, 1)
-    return render_out_from_aux(image[:rgb_channels], image[rgb_channels : rgb_channels + NUM_AUX])
+    return render_out_from_aux(image[:rgb_channels], image[rgb_channels : rgb_channels + NUM_AUX], K=K)
 
 
 def _detached(render: RenderOut) -> RenderOut:
@@ -202,7 +206,7 @@ def polar_loss(
     Returns:
         ``(loss, logs)`` as :meth:`PolarHooks.loss`: a scalar to add, detached scalar logs.
     """
-    render = render_out_from_gsplat(render_colors, render_alphas, rgb_channels=rgb_channels)
+    render = render_out_from_gsplat(render_colors, render_alphas, rgb_channels=rgb_channels, K=view.K)
     extra, logs = hooks.loss(step + 1, view, render, gaussian_state(params))
     if info is not None:
         info["polar_view"] = view
@@ -254,7 +258,7 @@ def make_render_fn(
                 colors, viewmats, Ks, view.width, view.height,
                 sh_degree=None, backgrounds=backgrounds, **raster_kwargs,
             )
-            render = render_out_from_gsplat(render_colors, render_alphas, rgb_channels=rgb.shape[-1])
+            render = render_out_from_gsplat(render_colors, render_alphas, rgb_channels=rgb.shape[-1], K=view.K)
             return dataclasses.replace(_detached(render), color=render.color.clamp(0, 1))
 
     return render_fn

@@ -101,7 +101,7 @@ class PgsrAdapter(InriaAdapter):
         normal = aux["rendered_normal"]
         K = self._view(camera).K
         depth = depth_from_plane(aux["rendered_distance"], normal, K, pixel_center=0.5)
-        return RenderOut(color=color, depth=depth, normal=normal, alpha=alpha)
+        return RenderOut(color=color, depth=depth, normal=normal, alpha=alpha, plane_depth=depth)
 
     def render_view(self, view: View) -> RenderOut:
         """Render a training view for Dense: a colour pass without PGSR's plane outputs, then

@@ -29,7 +29,7 @@ __all__ = [
     "depth_from_plane",
 ]
 
-AUX_CHANNELS = ("normal_x", "normal_y", "normal_z", "alpha", "z")
+AUX_CHANNELS = ("normal_x", "normal_y", "normal_z", "alpha", "z", "distance")
 """Order of the channels of :func:`aux_channels` (and of the image a rasterizer makes of them)."""
 
 _EPS = 1e-6
@@ -57,25 +57,29 @@ def gaussian_normals(means: Tensor, quats: Tensor, scales: Tensor, world_to_came
 def aux_channels(means: Tensor, quats: Tensor, scales: Tensor, world_to_camera: Tensor) -> Tensor:
     """Per-Gaussian colours for one extra render pass that yields normal, alpha and depth maps.
 
-    Composited with background 0 and no clamp, the (5, H, W) image of these channels is
-    (sum w n, sum w, sum w z): pass it to :func:`render_out_from_aux`.
+    Composited with background 0 and no clamp, the (6, H, W) image of these channels is
+    (sum w n, sum w, sum w z, sum w d): pass it to :func:`render_out_from_aux`.
 
     Args:
         means, quats, scales, world_to_camera: as :func:`gaussian_normals`.
 
     Returns:
-        (N, 5) channels in :data:`AUX_CHANNELS` order: camera-frame normal (3), 1, camera z.
+        (N, 6) channels in :data:`AUX_CHANNELS` order: camera-frame normal n (3), 1, camera z,
+        plane distance d = -n . mean_cam (the Gaussian's plane n . x = -d; PGSR's distance).
     """
     w2c = world_to_camera.to(means)
-    z = means @ w2c[2, :3] + w2c[2, 3]
+    means_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
     normals = gaussian_normals(means, quats, scales, w2c)
-    return torch.cat([normals, torch.ones_like(z)[:, None], z[:, None]], dim=-1)
+    distance = -(normals * means_cam).sum(-1)
+    z = means_cam[:, 2]
+    return torch.cat([normals, torch.ones_like(z)[:, None], z[:, None], distance[:, None]], dim=-1)
 
 
 def render_out_from_aux(
     color: Tensor,
     aux: Tensor,
     *,
+    K: Tensor | None = None,
     median_depth: Tensor | None = None,
     means2d: Tensor | None = None,
     radii: Tensor | None = None,
@@ -84,13 +88,15 @@ def render_out_from_aux(
 
     Args:
         color: (3, H, W) the trainer's rendered colour.
-        aux: (5, H, W) the composited aux channels (background 0, not clamped); channel-last
-            (H, W, 5) images (gsplat) must be permuted first.
+        aux: (6, H, W) the composited aux channels (background 0, not clamped); channel-last
+            (H, W, 6) images (gsplat) must be permuted first.
+        K: (3, 3) intrinsics of the render; given, the RenderOut also has the unbiased plane
+            depth (:func:`depth_from_plane`), which L_dn then uses.
         median_depth, means2d, radii: passed through.
 
     Returns:
         RenderOut with depth = sum w z / alpha (0 where alpha ~ 0), the alpha-weighted normal
-        (not renormalised, as the contract says) and alpha.
+        (not renormalised, as the contract says), alpha and, with ``K``, plane_depth.
     """
     if aux.dim() != 3 or aux.shape[0] != len(AUX_CHANNELS) or aux.shape[-2:] != color.shape[-2:]:
         raise ValueError(
@@ -103,6 +109,7 @@ def render_out_from_aux(
         normal=aux[:3],
         alpha=alpha,
         median_depth=median_depth,
+        plane_depth=None if K is None else depth_from_plane(aux[5:6], aux[:3], K),
         means2d=means2d,
         radii=radii,
     )
@@ -115,22 +122,26 @@ def clamped_aux_colors(
     output to [0, 1] (graphdeco's ``render(..., override_color=...)``, its forks').
 
     Two passes with background 0: ``normal_colors`` = (n + 1) / 2 and ``alpha_depth_colors`` =
-    (1, z / z_scale, 0), each in [0, 1] per Gaussian, so their composites (at most alpha <= 1)
-    are never clamped and stay differentiable. :func:`render_out_from_clamped_aux` decodes them.
+    (1, z / z_scale, d / z_scale) (d the plane distance), each in [0, 1] per Gaussian, so their
+    composites (at most alpha <= 1) are never clamped and stay differentiable.
+    :func:`render_out_from_clamped_aux` decodes them.
 
     Args:
         means, quats, scales, world_to_camera: as :func:`gaussian_normals`.
 
     Returns:
         ``(normal_colors (N, 3), alpha_depth_colors (N, 3), z_scale)``; ``z_scale`` is just above the
-        largest camera z of the Gaussians in front of the camera (1 if there are none).
+        largest camera z and plane distance of the Gaussians in front of the camera (1 if there are none).
     """
     aux = aux_channels(means, quats, scales, world_to_camera)
-    z = aux[:, 4]
+    z, distance = aux[:, 4], aux[:, 5]
     in_front = z.detach() > 0
-    z_scale = float(z.detach()[in_front].max()) * 1.001 if bool(in_front.any()) else 1.0
+    largest = torch.maximum(z.detach(), distance.detach())[in_front]
+    z_scale = float(largest.max()) * 1.001 if bool(in_front.any()) else 1.0
     normal_colors = (aux[:, :3] + 1) / 2
-    alpha_depth_colors = torch.stack([aux[:, 3], (z / z_scale).clamp(0, 1), torch.zeros_like(z)], dim=-1)
+    alpha_depth_colors = torch.stack(
+        [aux[:, 3], (z / z_scale).clamp(0, 1), (distance / z_scale).clamp(0, 1)], dim=-1
+    )
     return normal_colors, alpha_depth_colors, z_scale
 
 
@@ -139,6 +150,7 @@ def render_out_from_clamped_aux(
     normal_image: Tensor,
     alpha_depth_image: Tensor,
     z_scale: float,
+    K: Tensor | None = None,
     **passthrough: Tensor | None,
 ) -> RenderOut:
     """Decode the two passes of :func:`clamped_aux_colors` into a :class:`RenderOut`.
@@ -146,16 +158,18 @@ def render_out_from_clamped_aux(
     Args:
         color: (3, H, W) the trainer's rendered colour.
         normal_image: (3, H, W) composite of ``normal_colors`` = (sum w n + alpha) / 2.
-        alpha_depth_image: (3, H, W) composite of ``alpha_depth_colors`` = (alpha, sum w z / z_scale, 0).
+        alpha_depth_image: (3, H, W) composite of ``alpha_depth_colors`` = (alpha, sum w z / z_scale,
+            sum w d / z_scale).
         z_scale: the value :func:`clamped_aux_colors` returned.
+        K: (3, 3) intrinsics: the RenderOut then has the plane depth too (:func:`render_out_from_aux`).
         **passthrough: ``median_depth``, ``means2d``, ``radii`` for the RenderOut.
 
     Returns:
         RenderOut as :func:`render_out_from_aux` makes it.
     """
     alpha = alpha_depth_image[0:1]
-    aux = torch.cat([2 * normal_image - alpha, alpha, alpha_depth_image[1:2] * z_scale])
-    return render_out_from_aux(color, aux, **passthrough)
+    aux = torch.cat([2 * normal_image - alpha, alpha, alpha_depth_image[1:3] * z_scale])
+    return render_out_from_aux(color, aux, K=K, **passthrough)
 
 
 def depth_from_accumulated(accumulated: Tensor, alpha: Tensor) -> Tensor:
