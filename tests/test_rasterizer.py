@@ -222,3 +222,15 @@ def test_row_falloffs_are_exp_on_exactly_the_contributing_span() -> None:
     falloff = np.zeros(16)
     assert _row_falloffs(falloff, 1.0, 0.5, 0.1, math.nan, 0.5, 2, 9) == (2, 9)  # NaN: every pixel, no crash
     assert np.isnan(falloff[:8]).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_without_plane_depth_the_other_outputs_are_the_same(backend: str) -> None:
+    """``with_plane_depth=False`` (a trainer without L_dn) drops only the plane depth."""
+    width, height = 22, 17
+    params, K, w2c = _scene_with_occluders(0, width, height)
+    full = rasterize(*params, K, w2c, width, height, tile_size=8, backend=backend)
+    bare = rasterize(*params, K, w2c, width, height, tile_size=8, backend=backend, with_plane_depth=False)
+    assert full.plane_depth is not None and bare.plane_depth is None
+    for name in ("color", "depth", "median_depth", "normal", "alpha", "means2d", "radii"):
+        assert torch.equal(getattr(full, name), getattr(bare, name)), name

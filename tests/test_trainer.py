@@ -253,6 +253,8 @@ def test_hooks_with_zero_gradient_do_not_change_base_training(views):
     base.train()
     pt, pb = _params(trainer), _params(base)
     assert all(torch.equal(pt[k], pb[k]) for k in PARAM_NAMES)
+    # L_dn's plane depth is rendered for the hooks only (a Base run has no use for it)
+    assert trainer.render(views[0]).plane_depth is not None and base.render(views[0]).plane_depth is None
 
 
 def test_masked_target_uses_the_background(views):

@@ -227,8 +227,10 @@ class Trainer:
 
     def render(self, view: View, state: GaussianState | None = None) -> RenderOut:
         """Render ``view`` with the trainer's background; colour clamped to [0, 1] (as vanilla).
-        ``state``: the model's current :meth:`GaussianModel.state`, if already computed."""
-        out = self.model.render(view, background=self.background, state=state, backend=self.config.backend)
+        ``state``: the model's current :meth:`GaussianModel.state`, if already computed. The
+        plane depth (L_dn's) only with hooks: a Base run has no use for it."""
+        out = self.model.render(view, background=self.background, state=state, backend=self.config.backend,
+                                with_plane_depth=self.hooks is not None)
         return dataclasses.replace(out, color=out.color.clamp(0, 1))
 
     def _prepare(self) -> None:
