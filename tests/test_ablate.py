@@ -7,9 +7,15 @@ kernels are cached.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 import re
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -329,3 +335,48 @@ def test_reader_options_on_bundled_scenes_name_the_option(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: --bit-depth, --sfm apply to dataset folders") and "\n" not in err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def _children(pid: int) -> list[int]:
+    """PIDs of the processes whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[1]) == pid:
+                found.append(int(stat.parent.name))
+    return found
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (exited, not yet reaped)."""
+    with contextlib.suppress(OSError, IndexError):
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
+def test_a_grid_stopped_by_sigterm_leaves_no_worker_running(tmp_path):
+    """SIGTERM to `polargs ablate` alone (a scheduler's timeout, `kill`): its pool workers notice
+    that their parent is gone and stop too, instead of training their cells to the end unseen."""
+    args = ["ablate", "--scenes", SCENE, "--variants", "base,reg", "--out", str(tmp_path / "out"),
+            *[a for a in TINY if a not in ("--jobs", "1")], "--jobs", "2", "--train-set", "iterations=100000"]
+    proc = subprocess.Popen([sys.executable, "-m", "polargs_plugin.cli", *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        workers: list[int] = []
+        while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.5)
+            workers = [pid for pid in _children(proc.pid) if b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+        assert len(workers) == 2, f"the grid did not start its two workers (exit status {proc.poll()})"
+        proc.terminate()
+        proc.wait(timeout=30)
+        deadline = time.monotonic() + 60
+        while any(_running(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert not [pid for pid in workers if _running(pid)]
+    finally:
+        for pid in [proc.pid, *_children(proc.pid)]:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)

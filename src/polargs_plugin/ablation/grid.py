@@ -17,8 +17,10 @@ import contextlib
 import json
 import multiprocessing
 import os
+import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence, TextIO
@@ -158,11 +160,35 @@ def _finished_line(cell: Cell, summary: dict) -> str:
 _QUEUE: Any = None
 
 
-def _init_worker(queue: Any, threads: int, gpu_queue: Any = None) -> None:
-    """Pool initializer: thread counts before torch / numba are imported, the progress queue, and
-    this worker's GPU (``CUDA_VISIBLE_DEVICES``, read by CUDA at its first use in the worker)."""
+_ORPHANED = threading.Event()
+
+
+def _stop_when_orphaned(parent: int, interval: float = 1.0, grace: float = 10.0) -> None:
+    """End this worker once its parent, the grid, is gone: a grid stopped by SIGTERM or SIGKILL
+    cannot stop its workers itself, and they would otherwise train their cells to the end unseen.
+    SIGINT stops the running cell as Ctrl-C does (its partial checkpoint is kept) and
+    :func:`_worker` then exits; a worker that was idle, or that blocks on the pool's pipes (nobody
+    reads them any more), exits after ``grace`` seconds."""
+    while os.getppid() == parent:
+        time.sleep(interval)
+    _ORPHANED.set()
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(grace)
+    os._exit(1)
+
+
+def _init_worker(queue: Any, threads: int, gpu_queue: Any = None, parent: int | None = None) -> None:
+    """Pool initializer: thread counts before torch / numba are imported, the progress queue,
+    this worker's GPU (``CUDA_VISIBLE_DEVICES``, read by CUDA at its first use in the worker) and
+    a watch on ``parent``, the grid's process id (:func:`_stop_when_orphaned`; passed, not read
+    here: the grid may be gone before a spawned worker gets this far)."""
     global _QUEUE
     _QUEUE = queue
+    # A grid started in the background (`cmd &` in a script, nohup) inherits SIGINT ignored; the
+    # workers take Python's own handler back so that an interruption reaches the cell.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    if parent is not None:
+        threading.Thread(target=_stop_when_orphaned, args=(parent,), daemon=True).start()
     for key in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[key] = str(max(1, threads))
     if gpu_queue is not None:
@@ -178,7 +204,12 @@ def _worker(cell_data: dict) -> dict:
         if phase != "train" or done % step == 0 or done == total:
             _QUEUE.put((cell.name, phase, done, total))
 
-    return run_cell(cell, progress=report)
+    try:
+        return run_cell(cell, progress=report)
+    except KeyboardInterrupt:
+        if _ORPHANED.is_set():  # the grid is gone: nobody to report to, and exiting normally would
+            os._exit(130)  # wait for the pool's feeder threads on pipes nobody reads
+        raise
 
 
 def _write_crash_log(cell: Cell, message: str) -> str:
@@ -282,7 +313,7 @@ def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridRe
     reader.start()
     try:
         with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                                    initializer=_init_worker, initargs=(queue, threads, gpu_queue)) as pool:
+                                    initializer=_init_worker, initargs=(queue, threads, gpu_queue, os.getpid())) as pool:
             futures = {pool.submit(_worker, cell.to_dict()): cell for cell in pending}
             for future in cf.as_completed(futures):
                 cell = futures[future]
