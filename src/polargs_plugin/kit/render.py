@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from polargs_plugin.backends.reference.projection import quat_to_rotmat, shortest_axis_normals
+from polargs_plugin.backends.reference.projection import plane_distances, quat_to_rotmat, shortest_axis_normals
 from polargs_plugin.types import RenderOut
 
 __all__ = [
@@ -68,10 +68,9 @@ def aux_channels(means: Tensor, quats: Tensor, scales: Tensor, world_to_camera: 
         plane distance d = -n . mean_cam (the Gaussian's plane n . x = -d; PGSR's distance).
     """
     w2c = world_to_camera.to(means)
-    means_cam = means @ w2c[:3, :3].T + w2c[:3, 3]
+    z = means @ w2c[2, :3] + w2c[2, 3]
     normals = gaussian_normals(means, quats, scales, w2c)
-    distance = -(normals * means_cam).sum(-1)
-    z = means_cam[:, 2]
+    distance = plane_distances(normals, means, w2c)
     return torch.cat([normals, torch.ones_like(z)[:, None], z[:, None], distance[:, None]], dim=-1)
 
 

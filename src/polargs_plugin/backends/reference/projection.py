@@ -35,6 +35,7 @@ __all__ = [
     "sh_degree_from_coeffs",
     "eval_sh",
     "shortest_axis_normals",
+    "plane_distances",
     "project_gaussians",
 ]
 
@@ -191,6 +192,22 @@ def shortest_axis_normals(axes_cam: Tensor, scales: Tensor, means_cam: Tensor) -
     normals = torch.gather(axes_cam, 2, shortest[:, None, None].expand(-1, 3, 1))[..., 0]
     facing = torch.where((normals * means_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(normals)
     return normals * facing
+
+
+def plane_distances(normals_cam: Tensor, means: Tensor, world_to_camera: Tensor) -> Tensor:
+    """Each Gaussian's plane distance d = -n . mean_cam (PGSR's): its plane n . x = -d through
+    its mean, across its shortest axis, in the camera frame; positive when n faces the camera.
+
+    Args:
+        normals_cam: (N, 3) camera-frame normals facing the camera (:func:`shortest_axis_normals`).
+        means: (N, 3) world means.
+        world_to_camera: (4, 4) OpenCV world-to-camera transform.
+
+    Returns:
+        (N,) distances, differentiable w.r.t. ``normals_cam`` and ``means``.
+    """
+    w2c = world_to_camera.to(means)
+    return -(normals_cam * (means @ w2c[:3, :3].T + w2c[:3, 3])).sum(-1)
 
 
 def project_gaussians(

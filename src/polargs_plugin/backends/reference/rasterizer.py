@@ -20,7 +20,7 @@ from ...kit.render import depth_from_plane
 from ...types import RenderOut
 from .binning import bin_gaussians
 from .composite_torch import composite_torch
-from .projection import DEFAULT_EPS2D, eval_sh, project_gaussians
+from .projection import DEFAULT_EPS2D, eval_sh, plane_distances, project_gaussians
 
 __all__ = ["rasterize", "resolve_backend"]
 
@@ -158,10 +158,7 @@ def rasterize(
         means2d.retain_grad()
 
     bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
-    distances = None
-    if with_plane_depth:  # each Gaussian's plane n . x = -d through its mean, d = -n . mean_cam
-        w2c = world_to_camera.to(means)
-        distances = -(proj.normals * (means @ w2c[:3, :3].T + w2c[:3, 3])).sum(-1)
+    distances = plane_distances(proj.normals, means, world_to_camera) if with_plane_depth else None
     if path == "numba":
         from .composite_numba import composite_numba
 
