@@ -13,7 +13,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from polargs_plugin.backends.reference.projection import plane_distances, quat_to_rotmat, shortest_axis_normals
+from polargs_plugin.backends.reference.projection import (
+    depth_from_plane,
+    plane_distances,
+    quat_to_rotmat,
+    shortest_axis_normals,
+)
 from polargs_plugin.types import RenderOut
 
 __all__ = [
@@ -200,33 +205,3 @@ def depth_from_inverse(inverse_depth: Tensor, alpha: Tensor) -> Tensor:
     """
     valid = (alpha > _EPS) & (inverse_depth > _EPS * _EPS)
     return torch.where(valid, alpha / inverse_depth.clamp_min(_EPS * _EPS), torch.zeros_like(inverse_depth))
-
-
-def depth_from_plane(distance: Tensor, normal: Tensor, K: Tensor, pixel_center: float = 0.5) -> Tensor:
-    """Camera z from a rendered plane distance and normal (PGSR's unbiased plane depth).
-
-    The plane n . x = -d (camera frame, n facing the camera) meets the ray r(p) = K^-1 (p, 1)
-    at z = d / -(n . r).
-
-    Args:
-        distance: (1, H, W) alpha-blended plane distance d = |n . mean_cam|.
-        normal: (3, H, W) alpha-blended camera-frame normal (need not be unit).
-        K: (3, 3) intrinsics of the renderer.
-        pixel_center: where the renderer puts the centre of pixel (u, v): 0.5 for this project's
-            convention (u + 0.5, v + 0.5); 0.0 for PGSR's integer pixel rays.
-
-    Returns:
-        (1, H, W) camera z, 0 where the ray is parallel to the plane or faces away.
-    """
-    _, height, width = distance.shape
-    K = K.to(distance)
-    v, u = torch.meshgrid(
-        torch.arange(height, dtype=distance.dtype, device=distance.device) + pixel_center,
-        torch.arange(width, dtype=distance.dtype, device=distance.device) + pixel_center,
-        indexing="ij",
-    )
-    ray_x = (u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) / K[0, 0]
-    ray_y = (v - K[1, 2]) / K[1, 1]
-    cosine = -(normal[0] * ray_x + normal[1] * ray_y + normal[2])[None]
-    valid = cosine > _EPS
-    return torch.where(valid, distance / cosine.clamp_min(_EPS), torch.zeros_like(distance))

@@ -36,6 +36,7 @@ __all__ = [
     "eval_sh",
     "shortest_axis_normals",
     "plane_distances",
+    "depth_from_plane",
     "project_gaussians",
 ]
 
@@ -43,6 +44,7 @@ SH_C0 = 0.28209479177387814  # 1 / (2 sqrt(pi)), the degree-0 real SH basis valu
 DEPTH_CLAMP_SIGMAS = 5.0
 ALPHA_MIN = 1.0 / 255.0
 DEFAULT_EPS2D = 0.3  # vanilla 3DGS's screen-space dilation, pixels^2
+_PLANE_EPS = 1e-6  # smallest -(n . ray) of a plane a ray meets (depth_from_plane)
 FOV_CLAMP = 1.3  # the EWA Jacobian is evaluated with x/z, y/z limited to 1.3x the field of view
 EXTENT_SLACK = 1e-4  # relative slack of the opacity-aware extents
 
@@ -208,6 +210,36 @@ def plane_distances(normals_cam: Tensor, means: Tensor, world_to_camera: Tensor)
     """
     w2c = world_to_camera.to(means)
     return -(normals_cam * (means @ w2c[:3, :3].T + w2c[:3, 3])).sum(-1)
+
+
+def depth_from_plane(distance: Tensor, normal: Tensor, K: Tensor, pixel_center: float = 0.5) -> Tensor:
+    """Camera z from a rendered plane distance and normal (PGSR's unbiased plane depth).
+
+    The plane n . x = -d (camera frame, n facing the camera) meets the ray r(p) = K^-1 (p, 1)
+    at z = d / -(n . r).
+
+    Args:
+        distance: (1, H, W) alpha-blended plane distance d = |n . mean_cam|.
+        normal: (3, H, W) alpha-blended camera-frame normal (need not be unit).
+        K: (3, 3) intrinsics of the renderer.
+        pixel_center: where the renderer puts the centre of pixel (u, v): 0.5 for this project's
+            convention (u + 0.5, v + 0.5); 0.0 for PGSR's integer pixel rays.
+
+    Returns:
+        (1, H, W) camera z, 0 where the ray is parallel to the plane or faces away.
+    """
+    _, height, width = distance.shape
+    K = K.to(distance)
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=distance.dtype, device=distance.device) + pixel_center,
+        torch.arange(width, dtype=distance.dtype, device=distance.device) + pixel_center,
+        indexing="ij",
+    )
+    ray_x = (u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) / K[0, 0]
+    ray_y = (v - K[1, 2]) / K[1, 1]
+    cosine = -(normal[0] * ray_x + normal[1] * ray_y + normal[2])[None]
+    valid = cosine > _PLANE_EPS
+    return torch.where(valid, distance / cosine.clamp_min(_PLANE_EPS), torch.zeros_like(distance))
 
 
 def project_gaussians(

@@ -16,11 +16,10 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ...kit.render import depth_from_plane
 from ...types import RenderOut
 from .binning import bin_gaussians
 from .composite_torch import composite_torch
-from .projection import DEFAULT_EPS2D, eval_sh, plane_distances, project_gaussians
+from .projection import DEFAULT_EPS2D, depth_from_plane, eval_sh, plane_distances, project_gaussians
 
 __all__ = ["rasterize", "resolve_backend"]
 
