@@ -1,6 +1,7 @@
 """Reference trainer on a tiny scene rendered from known Gaussians: learning, determinism,
 resume equivalence, hook order, checkpoint errors."""
 
+import dataclasses
 import math
 
 import pytest
@@ -264,6 +265,57 @@ def test_masked_target_uses_the_background(views):
     assert bool(outside.any())
     assert torch.allclose(t[:, outside], torch.tensor([0.2, 0.4, 0.6])[:, None].expand(3, int(outside.sum())))
     assert torch.equal(t[:, v.mask[0]], v.image.clamp(0, 1)[:, v.mask[0]])
+
+
+def _square_mask_view(view: View, lo: int, hi: int) -> View:
+    mask = torch.zeros(1, SIZE, SIZE, dtype=torch.bool)
+    mask[:, lo:hi, lo:hi] = True
+    return dataclasses.replace(view, mask=mask)
+
+
+@pytest.mark.parametrize("width", [1, 2])
+def test_mask_edge_band_is_the_ring_of_pixels_just_outside_the_mask(views, width):
+    lo, hi = 8, 20  # a 12 x 12 square well inside the image
+    trainer = Trainer([_square_mask_view(views[0], lo, hi)], _config(mask_edge_band=width))
+    band = trainer.edge_bands[0][0]
+    rows, cols = torch.meshgrid(torch.arange(SIZE), torch.arange(SIZE), indexing="ij")
+    # Chebyshev distance to the square: 0 inside it
+    dist = torch.maximum((lo - rows).clamp(min=0).maximum((rows - hi + 1).clamp(min=0)),
+                         (lo - cols).clamp(min=0).maximum((cols - hi + 1).clamp(min=0)))
+    assert torch.equal(band, (dist >= 1) & (dist <= width))
+    assert int(band.sum()) == (12 + 2 * width) ** 2 - 12**2
+    assert Trainer(views, _config()).edge_bands == [None] * len(views)  # off by default
+    assert Trainer(views, _config(mask_edge_band=1, use_masks=False)).edge_bands == [None] * len(views)
+    with pytest.raises(ValueError, match="mask_edge_band"):
+        Trainer(views, _config(mask_edge_band=-1))
+
+
+def test_mask_edge_band_pixels_give_the_colour_loss_no_gradient(views):
+    """The colour's gradient is exactly 0 in the band, and the band's pixels do not count in the
+    loss: it equals the colour loss with the band's rendered pixels set to the target."""
+    view = _square_mask_view(views[0], 6, 22)
+    trainer = Trainer([view], _config(mask_edge_band=1))
+    band = trainer.edge_bands[0]
+    colors: list[torch.Tensor] = []
+    render = trainer.render
+
+    def keep_color(v, state=None):
+        out = render(v, state)
+        out.color.retain_grad()
+        colors.append(out.color)
+        return out
+
+    trainer.render = keep_color
+    logs = trainer.step()
+    color, target = colors[0], trainer.targets[0]
+    grad = color.grad.abs().sum(0, keepdim=True)
+    assert float(grad[band].max()) == 0.0
+    differs = (color.detach() - target).abs().sum(0, keepdim=True) > 1e-3
+    assert bool((differs & band).any())  # the render spills into the band: it would have counted
+    assert bool((grad[~band & differs] > 0).all())
+    ignored = torch.where(band, target, color.detach())
+    assert float(logs["loss"]) == pytest.approx(float(trainer.base_loss(ignored, target)), abs=1e-7)
+    assert float(logs["loss"]) < float(trainer.base_loss(color.detach(), target))
 
 
 def test_config_round_trip_and_cpu_preset_scaling():

@@ -5,7 +5,8 @@ One iteration (1-based, as in vanilla 3DGS ``train.py``):
 1. position learning rate for this iteration; SH degree + 1 every ``sh_increase_every``;
 2. pick the next view of a shuffled stack (refilled when empty);
 3. render, clamp the colour to [0, 1], base loss ``(1 - w) L1 + w (1 - SSIM)`` against the
-   training colour ``s0 / 2`` (outside the object mask replaced by the background colour),
+   training colour ``s0 / 2`` (outside the object mask replaced by the background colour; a
+   band of ``mask_edge_band`` pixels around the mask left out),
    computed by :func:`polargs_plugin.losses.photometric_loss`, the colour loss the hooks'
    reflective replacement assumes;
 4. **loss hook**: ``extra, logs = hooks.loss(it, view, render, gaussians)``; ``loss += extra``;
@@ -78,6 +79,13 @@ class TrainConfig:
     ``eps2d`` is the rasterizer's screen-space low-pass dilation in pixels^2 (vanilla 3DGS's
     0.3; ``rasterize``), given to the model (:class:`GaussianModel` keeps it with its parameters).
 
+    ``mask_edge_band``: pixels outside a view's mask within this many pixels of it (the mask
+    dilated by a (2b+1)^2 square) are left out of the colour loss; 0 (default, vanilla) keeps
+    every pixel. A binary mask says nothing of how much of a pixel on its edge the object covers,
+    and the rasterizer's low-pass filter spreads an exactly placed surface ~1 px beyond its
+    silhouette, so training against a background there pulls the surface inwards
+    (docs/evaluation.md "Depth bias"). Only with ``use_masks``.
+
     ``threads`` is the process's CPU threading policy (:class:`polargs_plugin.threads.ThreadPolicy`:
     one thread count for torch and numba, numba's threading layer, OpenMP's wait policy), applied
     when a :class:`Trainer` is built (docs/speed.md). ``log_every``: every how many iterations
@@ -93,6 +101,7 @@ class TrainConfig:
     ssim_weight: float = 0.2
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     use_masks: bool = True
+    mask_edge_band: int = 0
     num_init_points: int = 10_000
     init_resolution: int = 64
     initial_opacity: float = 0.1
@@ -179,6 +188,8 @@ class Trainer:
         cfg = self.config
         if cfg.log_every < 1:
             raise ValueError(f"TrainConfig.log_every must be >= 1, got {cfg.log_every}")
+        if cfg.mask_edge_band < 0:
+            raise ValueError(f"TrainConfig.mask_edge_band must be >= 0 pixels, got {cfg.mask_edge_band}")
         self.threads = cfg.threads.apply()  # process-wide thread counts / layer (polargs_plugin.threads)
         _seed_everything(cfg.seed)
         self.device = torch.device(cfg.device)
@@ -190,6 +201,7 @@ class Trainer:
         self.extent = scene_extent(self.views)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         self.targets = [self._target(v) for v in self.views]
+        self.edge_bands = [self._edge_band(v) for v in self.views]
         factor = cfg.schedule_scale
         self.sh_interval = max(1, round(cfg.sh_increase_every * factor))
         lrs = dataclasses.replace(cfg.lrs, means_max_steps=max(1, round(cfg.lrs.means_max_steps * factor)))
@@ -224,6 +236,15 @@ class Trainer:
             m = view.mask.to(image).reshape(1, view.height, view.width)
             image = image * m + self.background.reshape(3, 1, 1) * (1 - m)
         return image.contiguous()
+
+    def _edge_band(self, view: View) -> Tensor | None:
+        """(1, H, W) bool: the pixels the colour loss leaves out (``TrainConfig.mask_edge_band``), or None."""
+        width = self.config.mask_edge_band
+        if width == 0 or not self.config.use_masks or view.mask is None:
+            return None
+        mask = view.mask.reshape(1, 1, view.height, view.width).float()
+        grown = torch.nn.functional.max_pool2d(mask, 2 * width + 1, stride=1, padding=width)
+        return ((grown > 0) & (mask == 0)).reshape(1, view.height, view.width)
 
     def render(self, view: View, state: GaussianState | None = None) -> RenderOut:
         """Render ``view`` with the trainer's background; colour clamped to [0, 1] (as vanilla).
@@ -264,11 +285,13 @@ class Trainer:
         if it % self.sh_interval == 0:
             model.active_sh_degree = min(model.active_sh_degree + 1, model.max_sh_degree)
         index = self._next_view()
-        view, target = self.views[index], self.targets[index]
+        view, target, band = self.views[index], self.targets[index], self.edge_bands[index]
 
         # The hooks get the activations the render used (one set of activation nodes to differentiate).
         state = model.state() if self.hooks is not None else None
         render = self.render(view, state)
+        if band is not None:  # the target in the band: no loss, no gradient there (hooks' colour terms included)
+            render = dataclasses.replace(render, color=torch.where(band, target, render.color))
         loss = self.base_loss(render.color, target)
         values: dict[str, Any] = {}
         if self.hooks is not None:
