@@ -321,6 +321,7 @@ def test_mask_edge_band_pixels_give_the_colour_loss_no_gradient(views):
 def test_config_round_trip_and_cpu_preset_scaling():
     cfg = TrainConfig.cpu(0.1, seed=3)
     assert cfg.iterations == 3000 and cfg.seed == 3 and TrainConfig.cpu().iterations == 5000
+    assert (cfg.mask_edge_band, TrainConfig().mask_edge_band) == (1, 0)  # vanilla keeps every pixel
     again = TrainConfig.from_dict(cfg.to_dict())
     assert again == cfg
     d = cfg.density.scaled(cfg.schedule_scale)

@@ -164,6 +164,9 @@ class DensifyConfig:
             view's rendered depth serves the consistency filters.
         seed_relative_depth: (rendered - PatchMatch depth) / PatchMatch depth above which the
             rendered surface counts as wrong (its absolute value with ``seed_behind_surface``).
+            0.005: about one pixel footprint at 128 px (the paper seeds every pixel that passes
+            the filters; a larger threshold left the recessed render of the CPU preset unseeded,
+            docs/results.md).
         seed_max_plane_deviation: seeds only where the 3x3 neighbours' PatchMatch depths stay on
             the pixel's PatchMatch plane within this fraction of its depth (occlusion edges fail);
             None: no such test.
@@ -183,7 +186,7 @@ class DensifyConfig:
     max_new_per_call: int = 5000
     initial_opacity: float = 0.5
     alpha_threshold: float = 0.5
-    seed_relative_depth: float = 0.02
+    seed_relative_depth: float = 0.005
     seed_max_plane_deviation: float | None = 0.04
     seed_behind_surface: bool = False
     thin_scale_ratio: float = 0.1

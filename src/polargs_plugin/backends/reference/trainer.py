@@ -123,9 +123,10 @@ class TrainConfig:
     def cpu(cls, factor: float = CPU_FACTOR, **overrides: Any) -> "TrainConfig":
         """Every schedule multiplied by ``factor`` for a CPU run at 128x128: SH degree 1, 2000
         initial points, at most 6000 Gaussians from vanilla density control (Dense's appends come
-        on top, see :class:`DensityConfig`), no opacity reset and a screen dilation ``eps2d`` of
-        0.1 px^2 instead of 0.3 (a pixel at 128 px is a large share of the object: vanilla's
-        dilation widened silhouettes by ~1.4 px, which training offset by recessing the surface;
+        on top, see :class:`DensityConfig`), no opacity reset, a screen dilation ``eps2d`` of
+        0.1 px^2 instead of 0.3 and a ``mask_edge_band`` of 1 pixel (a pixel at 128 px is a large
+        share of the object: vanilla's dilation widened silhouettes by ~1.4 px, and training
+        against the background just outside the mask offset the spill by recessing the surface;
         docs/evaluation.md "Depth bias").
 
         The default ``polargs_plugin.config.CPU_FACTOR`` = 1/6 is the CPU preset: 5000 iterations, refinement every
@@ -140,6 +141,7 @@ class TrainConfig:
             num_init_points=2000,
             density=DensityConfig(max_gaussians=6000, opacity_reset=False),
             eps2d=CPU_EPS2D,
+            mask_edge_band=1,
         )
         return dataclasses.replace(cfg, **overrides)
 
