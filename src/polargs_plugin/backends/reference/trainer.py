@@ -84,7 +84,7 @@ class TrainConfig:
     every pixel. A binary mask says nothing of how much of a pixel on its edge the object covers,
     and the rasterizer's low-pass filter spreads an exactly placed surface ~1 px beyond its
     silhouette, so training against a background there pulls the surface inwards
-    (docs/evaluation.md "Depth bias"). Only with ``use_masks``.
+    (docs/evaluation.md "The mask's edge"). Only with ``use_masks``.
 
     ``threads`` is the process's CPU threading policy (:class:`polargs_plugin.threads.ThreadPolicy`:
     one thread count for torch and numba, numba's threading layer, OpenMP's wait policy), applied
@@ -127,7 +127,7 @@ class TrainConfig:
         0.1 px^2 instead of 0.3 and a ``mask_edge_band`` of 1 pixel (a pixel at 128 px is a large
         share of the object: vanilla's dilation widened silhouettes by ~1.4 px, and training
         against the background just outside the mask offset the spill by recessing the surface;
-        docs/evaluation.md "Depth bias").
+        docs/evaluation.md "Depth bias" and "The mask's edge").
 
         The default ``polargs_plugin.config.CPU_FACTOR`` = 1/6 is the CPU preset: 5000 iterations, refinement every
         17 from 83 to 2500, SH degree +1 every 167, position learning-rate decay over 5000; with
