@@ -162,11 +162,13 @@ class DensifyConfig:
         initial_opacity: the seeded Gaussians' opacity.
         alpha_threshold: rendered alpha below which a pixel is a hole (seeded); above it a source
             view's rendered depth serves the consistency filters.
-        seed_relative_depth: (rendered - PatchMatch depth) / PatchMatch depth above which the
-            rendered surface counts as wrong (its absolute value with ``seed_behind_surface``).
-            0.005: about one pixel footprint at 128 px (the paper seeds every pixel that passes
-            the filters; a larger threshold left the recessed render of the CPU preset unseeded,
-            docs/results.md).
+        seed_depth_footprints: how far, in pixel footprints (depth / focal), the rendered surface
+            must lie behind PatchMatch's to count as wrong (either side with
+            ``seed_behind_surface``). 0.88: 0.5 % of the depth at the bundled scenes' 128 px, 2 %
+            at 40 px. Below about a footprint, PatchMatch's own sub-pixel noise (its multi-view
+            filter allows 1 % of the depth) would seed where the render is right; far above it, a
+            surface recessed by a pixel goes unseeded (docs/patchmatch.md "Seeding"). The paper
+            seeds every pixel that passes the filters.
         seed_max_plane_deviation: seeds only where the 3x3 neighbours' PatchMatch depths stay on
             the pixel's PatchMatch plane within this fraction of its depth (occlusion edges fail);
             None: no such test.
@@ -186,7 +188,7 @@ class DensifyConfig:
     max_new_per_call: int = 5000
     initial_opacity: float = 0.5
     alpha_threshold: float = 0.5
-    seed_relative_depth: float = 0.005
+    seed_depth_footprints: float = 0.88
     seed_max_plane_deviation: float | None = 0.04
     seed_behind_surface: bool = False
     thin_scale_ratio: float = 0.1

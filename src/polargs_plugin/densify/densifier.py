@@ -172,7 +172,8 @@ class PolarDensifier:
         self.calls += 1
 
         seeds = seed_mask(keep, result.depth, render.depth, render.alpha,
-                          alpha_threshold=cfg.alpha_threshold, relative_depth=cfg.seed_relative_depth,
+                          alpha_threshold=cfg.alpha_threshold,
+                          relative_depth=seed_relative_depth(cfg.seed_depth_footprints, view.K),
                           normal=result.normal, K=view.K.to(dev), max_plane_deviation=cfg.seed_max_plane_deviation,
                           behind=cfg.seed_behind_surface)
         new = seed_gaussians(
@@ -214,3 +215,8 @@ class PolarDensifier:
         self._generator.set_state(state["generator"])
         self._depths = dict(state["depths"])
         self._targets = {k: (v["normal"], v["valid"]) for k, v in state["targets"].items()}
+
+
+def seed_relative_depth(footprints: float, K: Tensor) -> float:
+    """``footprints`` pixel footprints as a fraction of the depth: a pixel at depth z spans z / f_x."""
+    return footprints / float(K[0, 0])
