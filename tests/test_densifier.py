@@ -4,6 +4,7 @@ import torch
 
 from polargs_plugin.config import PolarConfig
 from polargs_plugin.densify.densifier import PolarDensifier
+from polargs_plugin.densify.seeding import seed_mask, seed_relative_depth
 from polargs_plugin.optics.azimuth import aolp_from_normals, zenith_from_normals
 from polargs_plugin.optics.fresnel import dolp_diffuse
 from polargs_plugin.types import PolarMaps, RenderOut
@@ -83,8 +84,6 @@ def test_fills_a_render_hole_with_gaussians_on_the_plane():
 def test_seeding_threshold_is_a_number_of_pixel_footprints():
     """The same number of footprints at any resolution: the CPU preset's 0.88 is 0.5 % of the depth
     at the bundled scenes' 128 px (f = 175.8) and 2 % at this file's 40 px (f = 44)."""
-    from polargs_plugin.densify.densifier import seed_relative_depth
-
     k = PolarConfig.cpu_demo().densify.seed_depth_footprints
     for focal, relative in ((175.84, 0.005), (44.0, 0.02)):
         K = torch.tensor([[focal, 0.0, 20.0], [0.0, focal, 20.0], [0.0, 0.0, 1.0]])
@@ -93,8 +92,6 @@ def test_seeding_threshold_is_a_number_of_pixel_footprints():
     K = torch.tensor([[44.0, 0.0, 20.0], [0.0, 44.0, 20.0], [0.0, 0.0, 1.0]])
     pm = torch.full((1, 1, 2), 4.0)
     rendered = pm + torch.tensor([[[1.5, 0.5]]]) * 4.0 / 44.0
-    from polargs_plugin.densify.seeding import seed_mask
-
     seeds = seed_mask(torch.ones(1, 1, 2, dtype=torch.bool), pm, rendered, torch.ones(1, 1, 2),
                       relative_depth=seed_relative_depth(1.0, K))
     assert seeds.tolist() == [[[True, False]]]

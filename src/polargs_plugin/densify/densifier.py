@@ -26,7 +26,7 @@ from torch import Tensor
 from polargs_plugin.config import PolarConfig
 from polargs_plugin.densify.filters import consistency_filter
 from polargs_plugin.densify.patchmatch import patchmatch
-from polargs_plugin.densify.seeding import seed_gaussians, seed_mask
+from polargs_plugin.densify.seeding import seed_gaussians, seed_mask, seed_relative_depth
 from polargs_plugin.densify.view_selection import scene_center, select_sources
 from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
 
@@ -215,8 +215,3 @@ class PolarDensifier:
         self._generator.set_state(state["generator"])
         self._depths = dict(state["depths"])
         self._targets = {k: (v["normal"], v["valid"]) for k, v in state["targets"].items()}
-
-
-def seed_relative_depth(footprints: float, K: Tensor) -> float:
-    """``footprints`` pixel footprints as a fraction of the depth: a pixel at depth z spans z / f_x."""
-    return footprints / float(K[0, 0])

@@ -18,7 +18,7 @@ from torch import Tensor
 from polargs_plugin.densify.homography import pixel_rays
 from polargs_plugin.types import NewGaussians
 
-__all__ = ["seed_mask", "plane_deviation", "frames_from_normals", "seed_gaussians"]
+__all__ = ["seed_mask", "seed_relative_depth", "plane_deviation", "frames_from_normals", "seed_gaussians"]
 
 
 def seed_mask(
@@ -58,6 +58,12 @@ def seed_mask(
             raise ValueError("seed_mask: max_plane_deviation needs the PatchMatch normal and K")
         seeds &= plane_deviation(depth, normal, K) <= max_plane_deviation
     return seeds
+
+
+def seed_relative_depth(footprints: float, K: Tensor) -> float:
+    """``footprints`` pixel footprints as a fraction of the depth (``seed_mask``'s ``relative_depth``):
+    a pixel at depth z spans z / f, f the mean of f_x and f_y as in :func:`seed_gaussians`' scales."""
+    return footprints / (0.5 * float(K[0, 0] + K[1, 1]))
 
 
 def plane_deviation(depth: Tensor, normal: Tensor, K: Tensor) -> Tensor:
