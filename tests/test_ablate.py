@@ -133,6 +133,34 @@ def test_mesh_error_is_the_exact_signed_distance(tmp_path):
     assert np.all(nearest - np.abs(distance) < 2e-3) and np.median(nearest - np.abs(distance)) < 1e-4
 
 
+
+def test_mesh_error_flags_the_vertices_the_evaluation_measures(tmp_path):
+    """With views, mesh_error.npz says which vertices lie in the object region (`polargs eval`'s
+    culling: seen, and inside the GT's dilated silhouette in every view that sees them), the very
+    points that chamfer_distance's culling keeps: a shell around the unit GT sphere all of it, a
+    floor below it only where every view that sees it sees it behind the sphere."""
+    import numpy as np
+    import open3d as o3d
+    from test_metrics import silhouette_view
+
+    from polargs_plugin.ablation.cell import EVAL_CULL_DILATION, mesh_error
+    from polargs_plugin.metrics import cull_to_masks, mesh_silhouettes
+
+    views = [silhouette_view(np.array(e, dtype=np.float64)) for e in ([3, 0, 1], [0, 3, 1], [-3, -1, 0.5])]
+    shell = o3d.geometry.TriangleMesh.create_sphere(radius=1.02, resolution=30)
+    floor = o3d.geometry.TriangleMesh.create_box(4, 4, 0.01).translate((-2, -2, -1.5)).subdivide_midpoint(4)
+    o3d.io.write_triangle_mesh(str(tmp_path / "pred.ply"), shell + floor)
+    gt = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=40)
+    o3d.io.write_triangle_mesh(str(tmp_path / "gt.ply"), gt)
+    error = mesh_error(tmp_path / "pred.ply", tmp_path / "gt.ply", views)
+    on_shell = np.linalg.norm(error["vertices"], axis=1) < 1.1
+    assert on_shell.sum() == len(shell.vertices)
+    assert error["evaluated"][on_shell].all() and error["evaluated"][~on_shell].mean() < 0.25
+    vertices = error["vertices"].astype(np.float64)
+    culled = cull_to_masks(vertices, views, EVAL_CULL_DILATION, masks=mesh_silhouettes(gt, views), require_seen=True)
+    assert np.array_equal(error["evaluated"], culled)
+    assert "evaluated" not in mesh_error(tmp_path / "pred.ply", tmp_path / "gt.ply")  # without views: not claimed
+
 def _fake_run(out: Path, variant: str, seed: int, figures: dict, chamfer: dict | None = None) -> None:
     """A run folder as run_cell writes it, summary.json (and metrics.json) only."""
     from polargs_plugin.ablation.cell import RUN_FORMAT

@@ -65,6 +65,8 @@ PARTIAL_STATE = "state.json"
 PARTIAL_LOG = "attempts.log"
 #: periodic checkpoints per training when ``Cell.checkpoint_every`` is None.
 DEFAULT_CHECKPOINTS = 10
+#: `polargs eval`'s silhouette dilation (pixels) for the object region, the cells' default
+EVAL_CULL_DILATION = 2
 
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
 
@@ -402,13 +404,13 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     eval_args = argparse.Namespace(
         target=tmp, gt=gt_mesh, normals=has_normals, num_samples=int(cell.eval.get("num_samples", 1_000_000)),
         seed=0, max_dist=None, fscore_threshold=None, units=cell.eval.get("units", "scene units"),
-        cull=bool(cell.eval.get("cull", True)), cull_dilation=2, out=None,
+        cull=bool(cell.eval.get("cull", True)), cull_dilation=EVAL_CULL_DILATION, out=None,
     )
     eval_cli.run(eval_args)
     metrics = json.loads((tmp / "metrics.json").read_text())
     clock.lap("eval")
     report("pictures", 0, 1)
-    _report_data(trainer, tmp, gt_mesh)
+    _report_data(trainer, tmp, gt_mesh, eval_args.cull)
     clock.lap("pictures")
 
     chamfer = metrics.get("chamfer") or {}
@@ -662,9 +664,10 @@ def report_view_indices(num_views: int) -> list[int]:
     return sorted({0, num_views // 2})[:REPORT_VIEW_COUNT]
 
 
-def _report_data(trainer, tmp: Path, gt_mesh: Path) -> None:
+def _report_data(trainer, tmp: Path, gt_mesh: Path, cull: bool) -> None:
     """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report (the mesh error: exact
-    signed distance of the predicted mesh's vertices to the GT mesh, outside positive)."""
+    signed distance of the predicted mesh's vertices to the GT mesh, outside positive; with ``cull``,
+    which vertices lie in the region the evaluation measured)."""
     import numpy as np
     import torch
 
@@ -706,25 +709,34 @@ def _report_data(trainer, tmp: Path, gt_mesh: Path) -> None:
             with atomic_path(tmp / "pc_maps.npz") as path:
                 np.savez_compressed(path, **maps)
 
-    error = mesh_error(tmp / "tsdf_mesh.ply", gt_mesh)
+    error = mesh_error(tmp / "tsdf_mesh.ply", gt_mesh, trainer.views if cull else None)
     with atomic_path(tmp / "mesh_error.npz") as path:
         np.savez_compressed(path, **error)
 
 
-def mesh_error(mesh: Path, gt_mesh: Path) -> dict[str, Any]:
+def mesh_error(mesh: Path, gt_mesh: Path, views: list | None = None) -> dict[str, Any]:
     """mesh_error.npz's arrays: ``vertices`` (V, 3) float32 of the mesh file ``mesh`` and their
     ``signed_distance`` (V,) float32 to the GT mesh (exact closest point, outside positive:
-    :func:`polargs_plugin.metrics.signed_distances`)."""
+    :func:`polargs_plugin.metrics.signed_distances`); with ``views``, ``evaluated`` (V,) bool: the
+    vertices in the evaluation's object region (seen by some view and inside the GT mesh's
+    silhouette, dilated by ``EVAL_CULL_DILATION`` pixels, in every view that sees them; the
+    predicted points ``polargs eval`` keeps), so that the picture does not colour the support
+    (a floor) that the figures leave out."""
     import numpy as np
 
     from polargs_plugin.mesh import read_mesh
-    from polargs_plugin.metrics import signed_distances
+    from polargs_plugin.metrics import cull_to_masks, mesh_silhouettes, signed_distances
 
     vertices = np.asarray(read_mesh(mesh).vertices, dtype=np.float64)
+    gt = read_mesh(gt_mesh)
     # open3d's BVH, a few seconds; the nearest of 400k GT samples (cKDTree) that this once was
     # took minutes for a mesh inside the GT, far from every sample (polargs_plugin.nearest)
-    distance = signed_distances(vertices, read_mesh(gt_mesh))
-    return {"vertices": vertices.astype(np.float32), "signed_distance": distance.astype(np.float32)}
+    distance = signed_distances(vertices, gt)
+    error = {"vertices": vertices.astype(np.float32), "signed_distance": distance.astype(np.float32)}
+    if views is not None:
+        error["evaluated"] = cull_to_masks(vertices, views, EVAL_CULL_DILATION, masks=mesh_silhouettes(gt, views),
+                                           require_seen=True)
+    return error
 
 
 def _git() -> dict[str, Any]:

@@ -33,6 +33,7 @@ __all__ = ["write_report", "REPORT_NAME", "FIGURES_DIR"]
 
 REPORT_NAME = "report.md"
 FIGURES_DIR = "figures"
+NOT_EVALUATED_GREY = (0.62, 0.62, 0.62, 1.0)
 COLORS = {"base": "#7f7f7f", "reg": "#1f77b4", "no-dense": "#ff7f0e", "no-pc": "#2ca02c", "full": "#d62728"}
 
 
@@ -180,43 +181,58 @@ def _views_figure(reps: list[tuple[str, Path]], path: Path) -> Path | None:
     return _save(fig, path)
 
 
+def _evaluated(err: dict[str, np.ndarray]) -> np.ndarray:
+    """(V,) bool: the vertices the evaluation measured (all of them in a run without the flag)."""
+    flag = err.get("evaluated")
+    return np.ones(len(err["signed_distance"]), bool) if flag is None else flag.astype(bool)
+
+
 def _mesh_error_figure(reps: list[tuple[str, Path]], path: Path, units: str) -> Path | None:
+    """The predicted mesh's vertices seen from the first report view, coloured by their signed
+    distance to the GT; vertices outside the evaluated region (a floor the GT leaves out) in grey,
+    and the colour scale and the median from the evaluated ones only."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
     data = []
     for variant, folder in reps:
         err, views = _load_npz(folder / "mesh_error.npz"), _load_npz(folder / "views.npz")
-        if err is not None and views is not None and len(err["vertices"]):
+        if err is not None and views is not None and _evaluated(err).any():
             data.append((variant, err, views))
     if not data:
         return None
-    allabs = np.concatenate([np.abs(e["signed_distance"]) for _, e, _ in data])
+    allabs = np.concatenate([np.abs(e["signed_distance"][_evaluated(e)]) for _, e, _ in data])
     vmax = float(np.percentile(allabs, 95)) or 1e-3
+    scale = ScalarMappable(Normalize(-vmax, vmax), "coolwarm")
     fig = _figure(2.6 * len(data) + 0.8, 2.9)
     axes = np.atleast_1d(fig.subplots(1, len(data)))
-    scatter = None
     for ax, (variant, err, views) in zip(axes, data):
         K, w2c = views["0/K"], views["0/world_to_camera"]
         height, width = views["0/alpha"].shape[-2:]
-        points, dist = err["vertices"].astype(np.float64), err["signed_distance"]
+        points, dist, evaluated = err["vertices"].astype(np.float64), err["signed_distance"], _evaluated(err)
         if len(points) > 80_000:
             keep = np.random.default_rng(0).choice(len(points), 80_000, replace=False)
-            points, dist = points[keep], dist[keep]
+            points, dist, evaluated = points[keep], dist[keep], evaluated[keep]
         cam = points @ w2c[:3, :3].T + w2c[:3, 3]
         front = cam[:, 2] > 1e-6
-        cam, dist = cam[front], dist[front]
+        cam, dist, evaluated = cam[front], dist[front], evaluated[front]
         uv = cam @ K.T
         uv = uv[:, :2] / uv[:, 2:]
         order = np.argsort(-cam[:, 2])  # far first: near vertices are drawn on top
         if "0/mask" in views:
             ax.imshow(np.where(views["0/mask"][0], 0.85, 1.0), cmap="gray", vmin=0, vmax=1, extent=(0, width, height, 0))
-        scatter = ax.scatter(uv[order, 0], uv[order, 1], c=dist[order], s=max(0.5, 3000 / max(1, len(order)) ** 0.5 / 4),
-                             cmap="coolwarm", vmin=-vmax, vmax=vmax, linewidths=0)
+        size = max(0.5, 3000 / max(1, len(order)) ** 0.5 / 4)
+        # one scatter in depth order, so that near vertices hide far ones; grey where not evaluated
+        colors = scale.to_rgba(dist)
+        colors[~evaluated] = NOT_EVALUATED_GREY
+        ax.scatter(uv[order, 0], uv[order, 1], c=colors[order], s=size, linewidths=0)
         ax.set_xlim(0, width)
         ax.set_ylim(height, 0)
         ax.set_aspect("equal")
-        ax.set_title(f"{variant}: median {np.median(err['signed_distance']):+.3g}", fontsize=8, color=COLORS.get(variant, "black"))
+        median = np.median(err["signed_distance"][_evaluated(err)])
+        ax.set_title(f"{variant}: median {median:+.3g}", fontsize=8, color=COLORS.get(variant, "black"))
         _off(ax)
-    if scatter is not None:
-        fig.colorbar(scatter, ax=list(axes), shrink=0.8, label=f"signed distance ({units})")
+    fig.colorbar(scale, ax=list(axes), shrink=0.8, label=f"signed distance ({units})\ngrey: not evaluated")
     return _save(fig, path)
 
 
