@@ -26,6 +26,7 @@ python bench/dense_effect.py [--scene glossy_plane_sphere] [--views 12] [--size 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import time
@@ -129,6 +130,13 @@ def main() -> None:
     print(f"seeds only / off: Chamfer x{seeds['chamfer'] / off['chamfer']:.3f}, "
           f"normal MAE x{seeds['normal_mae'] / off['normal_mae']:.3f}")
     print(load())
+    print(json.dumps({"bench": "dense_effect", "scene": args.scene, "views": args.views, "size": args.size,
+                      "factor": args.factor, "seed": args.seed,
+                      "runs": {name: {k: res[k] for k in keys} for name, res in results.items()},
+                      "chamfer_on_vs_off": on["chamfer"] / off["chamfer"],
+                      "normal_mae_on_vs_off": on["normal_mae"] / off["normal_mae"],
+                      "time_on_vs_off": on["seconds"] / off["seconds"],
+                      "chamfer_seeds_only_vs_off": seeds["chamfer"] / off["chamfer"]}))
 
 
 if __name__ == "__main__":

@@ -83,7 +83,7 @@ def _naive_cost(gray_ref, sources, K_ref, Ks, Rs, ts, u, v, depth, normal, radiu
         H = plane_homography(K_ref, Ks[s], Rs[s], ts[s], n, dpl).tolist()
         src = sources[s]
         hs, ws = len(src), len(src[0])
-        W = sr = ss = sw = swr = sww = 0.0
+        W = sr = sw = swr = sww = 0.0
         rr = 0.0
         centre = gray_ref[v][u]
         for oy in range(-radius, radius + 1, step):

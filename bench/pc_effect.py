@@ -17,6 +17,7 @@ python bench/pc_effect.py [--scene bumpy_mixed] [--views 16] [--size 96] [--fact
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import torch
@@ -90,6 +91,12 @@ def main() -> None:
     off, on = results["PC off"], results["PC on"]
     print(f"PC on / off: highlight error x{on['highlight_err'] / off['highlight_err']:.3f}, "
           f"normal MAE x{on['normal_mae'] / off['normal_mae']:.3f}, Chamfer x{on['chamfer'] / off['chamfer']:.3f}")
+    print(json.dumps({"bench": "pc_effect", "scene": args.scene, "views": args.views, "size": args.size,
+                      "factor": args.factor, "seed": args.seed,
+                      "runs": {name: {k: res[k] for k in keys} for name, res in results.items()},
+                      "highlight_err_on_vs_off": on["highlight_err"] / off["highlight_err"],
+                      "normal_mae_on_vs_off": on["normal_mae"] / off["normal_mae"],
+                      "chamfer_on_vs_off": on["chamfer"] / off["chamfer"]}))
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ Usage: python bench/plugin_overhead.py [--scene bumpy_mixed] [--steps 40] [--siz
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import time
@@ -75,8 +76,8 @@ def _forward_backward(trainer: Trainer, index: int, hooks: PolarHooks | None) ->
     return seconds
 
 
-def _measure(trainer: Trainer, hooks: TimedHooks, steps: int) -> None:
-    """Alternate plain and hooked steps; print the ratios for this iteration range."""
+def _measure(trainer: Trainer, hooks: TimedHooks, steps: int) -> dict[str, float]:
+    """Alternate plain and hooked steps; print the ratios for this iteration range and return them."""
     first = trainer.iteration + 1
     hooks.seconds, hooks.calls = 0.0, 0
     plain, hooked, paired = [], [], []
@@ -93,12 +94,14 @@ def _measure(trainer: Trainer, hooks: TimedHooks, steps: int) -> None:
                 logs = step_logs
     in_loss = hooks.seconds / hooks.calls  # the paired calls included
     terms = ", ".join(k for k in logs if k.startswith("l_"))
+    figures: dict[str, float] = {"first_iteration": first, "last_iteration": trainer.iteration}
     print(f"iterations {first}-{trainer.iteration} ({steps} pairs), {trainer.model.num} Gaussians; hook terms: {terms}")
     for column, clock in enumerate(("wall", "CPU ")):
         base = statistics.fmean(p[column] for p in plain)
         marginal = statistics.fmean(m[column] for m in paired)
         print(f"  {clock} paired: hooks.loss forward + the backward it adds {marginal * 1e3:6.2f} ms = "
               f"{marginal / base:+6.1%} of the base step (target <= 10%)")
+        figures[f"paired_overhead_{clock.strip().lower()}"] = marginal / base
     for column, clock in enumerate(("wall", "CPU ")):
         base = statistics.fmean(p[column] for p in plain)
         with_hooks = statistics.fmean(h[column] for h in hooked)
@@ -107,8 +110,12 @@ def _measure(trainer: Trainer, hooks: TimedHooks, steps: int) -> None:
         median = statistics.median((h - p) / p for h, p in quads)
         print(f"  {clock} base step {base * 1e3:7.1f} ms, with PolarHooks {with_hooks * 1e3:7.1f} ms: overhead "
               f"{(with_hooks - base) / base:+6.1%} (median over ABBA quads {median:+6.1%}; target <= 10%)")
+        figures[f"step_overhead_{clock.strip().lower()}"] = (with_hooks - base) / base
+        figures[f"base_step_ms_{clock.strip().lower()}"] = base * 1e3
     base = statistics.fmean(p[0] for p in plain)
     print(f"  inside hooks.loss (forward, wall) {in_loss * 1e3:.2f} ms = {in_loss / base:.1%} of the base step")
+    figures["hooks_loss_share_wall"] = in_loss / base
+    return figures
 
 
 def main() -> None:
@@ -135,11 +142,14 @@ def main() -> None:
     print(f"TrainConfig.cpu(), PolarConfig.cpu_demo(0.02) with Dense off: L_dn from iteration {from_iter}")
     for _ in range(args.warmup):  # the first step runs hooks.preprocess
         trainer.step()
-    _measure(trainer, hooks, args.steps)
+    before_l_dn = _measure(trainer, hooks, args.steps)
     while trainer.iteration < from_iter:  # hooked steps up to L_dn's start
         trainer.step()
-    _measure(trainer, hooks, args.steps)
+    with_l_dn = _measure(trainer, hooks, args.steps)
     print(f"load average at the end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(json.dumps({"bench": "plugin_overhead", "scene": args.scene, "views": args.views, "size": args.size,
+                      "threads": args.threads, "before_l_dn": before_l_dn, "with_l_dn": with_l_dn,
+                      "load_average": os.getloadavg()[0]}))
 
 
 if __name__ == "__main__":
