@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from polargs_plugin.ablation.cell import Cell, CellFailed, run_cell
@@ -134,12 +135,32 @@ def test_mesh_error_is_the_exact_signed_distance(tmp_path):
 
 
 
+def test_depth_error_pixels_leave_out_what_is_not_the_object():
+    """The report's depth-error picture shows (and scales by) the masked, rendered pixels on the GT
+    object's silhouette; without a saved silhouette (older runs) every masked, rendered pixel."""
+    from polargs_plugin.ablation.report import _depth_error_pixels
+
+    size = 8
+    mask = np.zeros((1, size, size), bool)
+    mask[:, 1:7, 1:7] = True
+    alpha = np.ones((1, size, size))
+    alpha[:, 1, :] = 0.2  # not rendered
+    silhouette = np.zeros((1, size, size), bool)
+    silhouette[:, :4, :] = True  # the object: the top half of the image, the rest a floor in the mask
+    d = {"0/mask": mask, "0/alpha": alpha, "0/depth_gt": np.ones((1, size, size)), "0/gt_silhouette": silhouette}
+    expected = np.zeros((size, size), bool)
+    expected[2:4, 1:7] = True
+    assert np.array_equal(_depth_error_pixels(d, 0), expected)
+    del d["0/gt_silhouette"]
+    expected[2:7, 1:7] = True
+    assert np.array_equal(_depth_error_pixels(d, 0), expected)
+
+
 def test_mesh_error_flags_the_vertices_the_evaluation_measures(tmp_path):
     """With views, mesh_error.npz says which vertices lie in the object region (`polargs eval`'s
     culling: seen, and inside the GT's dilated silhouette in every view that sees them), the very
     points that chamfer_distance's culling keeps: a shell around the unit GT sphere all of it, a
     floor below it only where every view that sees it sees it behind the sphere."""
-    import numpy as np
     import open3d as o3d
     from test_metrics import silhouette_view
 
@@ -240,6 +261,14 @@ def _check_run(folder: Path, variant: str) -> dict:
     for name in ("metrics.json", "tsdf_mesh.ply", "checkpoint.pt", "views.npz", "mesh_error.npz", "run.log"):
         assert (folder / name).is_file(), name
     assert (folder / "pc_maps.npz").is_file() == (variant == "full")
+    views, error = np.load(folder / "views.npz"), np.load(folder / "mesh_error.npz")
+    # the GT object's silhouette in each report view (the depth-error picture's pixels): seen,
+    # and not the whole image; the vertices the evaluation measured, flagged
+    for i in range(2):
+        silhouette = views[f"{i}/gt_silhouette"]
+        assert silhouette.dtype == bool and silhouette.shape == views[f"{i}/alpha"].shape
+        assert 0 < silhouette.mean() < 1
+    assert error["evaluated"].shape == error["signed_distance"].shape and error["evaluated"].any()
     return summary
 
 

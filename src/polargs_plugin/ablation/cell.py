@@ -665,19 +665,26 @@ def report_view_indices(num_views: int) -> list[int]:
 
 
 def _report_data(trainer, tmp: Path, gt_mesh: Path, cull: bool) -> None:
-    """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report (the mesh error: exact
-    signed distance of the predicted mesh's vertices to the GT mesh, outside positive; with ``cull``,
-    which vertices lie in the region the evaluation measured)."""
+    """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report. views.npz: the report
+    views' renders, targets, cameras, GT maps and ``gt_silhouette`` (1, H, W), the GT mesh's
+    silhouette; the mesh error: exact signed distance of the predicted mesh's vertices to the GT
+    mesh, outside positive; with ``cull``, which vertices lie in the region the evaluation measured."""
     import numpy as np
     import torch
 
     from polargs_plugin.io import atomic_path
 
+    from polargs_plugin.mesh import read_mesh
+    from polargs_plugin.metrics import mesh_silhouettes
+
     indices = report_view_indices(len(trainer.views))
     views = [trainer.views[i] for i in indices]
+    # where the GT object itself is seen: the depth-error picture leaves a support plane out
+    silhouettes = mesh_silhouettes(read_mesh(gt_mesh), views)
     data: dict[str, np.ndarray] = {}
     with torch.no_grad():
         for i, (index, view) in enumerate(zip(indices, views)):
+            data[f"{i}/gt_silhouette"] = silhouettes[i][None]
             out = trainer.model.render(view, background=trainer.background, backend=trainer.config.backend)
             depth = out.median_depth if out.median_depth is not None else out.depth
             fields = {

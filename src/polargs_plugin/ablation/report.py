@@ -122,6 +122,16 @@ def _metrics_figure(entries: list[dict], runs: list[dict], path: Path, units: st
     return _save(fig, path)
 
 
+def _depth_error_pixels(d: dict[str, np.ndarray], i: int) -> np.ndarray:
+    """(H, W) bool: the pixels of report view ``i`` whose depth error is shown and scaled: inside the
+    mask (else where GT depth exists), rendered (alpha > 0.5), and on the GT object's silhouette
+    where the run saved it (so a support plane in the mask, e.g. a floor, sets no colour)."""
+    pixels = (d[f"{i}/mask"][0] if f"{i}/mask" in d else d[f"{i}/depth_gt"][0] > 0) & (d[f"{i}/alpha"][0] > 0.5)
+    if f"{i}/gt_silhouette" in d:
+        pixels = pixels & d[f"{i}/gt_silhouette"][0]
+    return pixels
+
+
 def _views_figure(reps: list[tuple[str, Path]], path: Path) -> Path | None:
     data = [(variant, _load_npz(folder / "views.npz")) for variant, folder in reps]
     data = [(v, d) for v, d in data if d is not None]
@@ -133,7 +143,7 @@ def _views_figure(reps: list[tuple[str, Path]], path: Path) -> Path | None:
     for _, d in data:
         for i in range(num_views):
             if f"{i}/depth_gt" in d:
-                valid = (d[f"{i}/mask"][0] if f"{i}/mask" in d else d[f"{i}/depth_gt"][0] > 0) & (d[f"{i}/alpha"][0] > 0.5)
+                valid = _depth_error_pixels(d, i)
                 errors.append(np.abs(d[f"{i}/depth"][0] - d[f"{i}/depth_gt"][0])[valid])
     flat = np.concatenate(errors) if errors else np.zeros(1)
     vmax = float(np.percentile(flat, 98)) if flat.size else 1.0
@@ -165,8 +175,7 @@ def _views_figure(reps: list[tuple[str, Path]], path: Path) -> Path | None:
             axes[row, 3 * i].imshow(_hwc(d[f"{i}/color"]))
             axes[row, 3 * i + 1].imshow(_normal_rgb(d[f"{i}/normal"], alpha_ok))
             if f"{i}/depth_gt" in d:
-                mask = d[f"{i}/mask"][0] if f"{i}/mask" in d else d[f"{i}/depth_gt"][0] > 0
-                err = np.where(mask & alpha_ok, d[f"{i}/depth"][0] - d[f"{i}/depth_gt"][0], np.nan)
+                err = np.where(_depth_error_pixels(d, i), d[f"{i}/depth"][0] - d[f"{i}/depth_gt"][0], np.nan)
                 image = axes[row, 3 * i + 2].imshow(err, cmap=cmap, vmin=-vmax, vmax=vmax)
         axes[row, 0].set_ylabel(variant, fontsize=9, color=COLORS.get(variant, "black"))
         if row == 1:
@@ -177,7 +186,8 @@ def _views_figure(reps: list[tuple[str, Path]], path: Path) -> Path | None:
     for ax in axes.flat:
         _off(ax)
     if image is not None:
-        fig.colorbar(image, ax=axes[1:, :].ravel().tolist(), shrink=0.6, label="depth error (scene units)")
+        fig.colorbar(image, ax=axes[1:, :].ravel().tolist(), shrink=0.6,
+                     label="depth error (scene units)\ngrey: no render, or not the object")
     return _save(fig, path)
 
 
