@@ -35,6 +35,7 @@ __all__ = [
     "sample_surface",
     "cull_to_masks",
     "mesh_silhouettes",
+    "in_object_region",
     "visible_from_views",
     "signed_distances",
     "chamfer_distance",
@@ -196,6 +197,13 @@ def mesh_silhouettes(mesh: MeshLike, views: Sequence[View]) -> list[np.ndarray]:
     return out
 
 
+
+def in_object_region(points: np.ndarray, gt: MeshLike, views: Sequence[View], dilation_px: int = 2) -> np.ndarray:
+    """(N,) bool: the predicted ``points`` (N, 3) that region "object" keeps: seen by some view, and
+    inside the GT mesh's silhouette (:func:`mesh_silhouettes`) dilated by ``dilation_px`` pixels in
+    every view that sees them (:func:`cull_to_masks`)."""
+    return cull_to_masks(points, views, dilation_px, masks=mesh_silhouettes(gt, views), require_seen=True)
+
 def visible_from_views(
     points: np.ndarray, views: Sequence[View], occluder: MeshLike, tolerance: float | None = None
 ) -> np.ndarray:
@@ -339,8 +347,7 @@ def chamfer_distance(
         pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px)]
     elif region == "object":
         step("culling to the object silhouettes")
-        silhouettes = mesh_silhouettes(gt, cull_views)
-        pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px, masks=silhouettes, require_seen=True)]
+        pred_points = pred_points[in_object_region(pred_points, gt, cull_views, cull_dilation_px)]
         step("GT visibility")
         gt_points = gt_points[visible_from_views(gt_points, cull_views, gt if occluder is None else occluder)]
         if len(gt_points) == 0:

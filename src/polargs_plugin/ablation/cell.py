@@ -673,7 +673,6 @@ def _report_data(trainer, tmp: Path, gt_mesh: Path, cull: bool) -> None:
     import torch
 
     from polargs_plugin.io import atomic_path
-
     from polargs_plugin.mesh import read_mesh
     from polargs_plugin.metrics import mesh_silhouettes
 
@@ -725,14 +724,13 @@ def mesh_error(mesh: Path, gt_mesh: Path, views: list | None = None) -> dict[str
     """mesh_error.npz's arrays: ``vertices`` (V, 3) float32 of the mesh file ``mesh`` and their
     ``signed_distance`` (V,) float32 to the GT mesh (exact closest point, outside positive:
     :func:`polargs_plugin.metrics.signed_distances`); with ``views``, ``evaluated`` (V,) bool: the
-    vertices in the evaluation's object region (seen by some view and inside the GT mesh's
-    silhouette, dilated by ``EVAL_CULL_DILATION`` pixels, in every view that sees them; the
-    predicted points ``polargs eval`` keeps), so that the picture does not colour the support
-    (a floor) that the figures leave out."""
+    vertices in the evaluation's object region (:func:`polargs_plugin.metrics.in_object_region`
+    with ``EVAL_CULL_DILATION``: the predicted points ``polargs eval`` keeps), so that the picture
+    does not colour the support (a floor) that the figures leave out."""
     import numpy as np
 
     from polargs_plugin.mesh import read_mesh
-    from polargs_plugin.metrics import cull_to_masks, mesh_silhouettes, signed_distances
+    from polargs_plugin.metrics import in_object_region, signed_distances
 
     vertices = np.asarray(read_mesh(mesh).vertices, dtype=np.float64)
     gt = read_mesh(gt_mesh)
@@ -741,8 +739,7 @@ def mesh_error(mesh: Path, gt_mesh: Path, views: list | None = None) -> dict[str
     distance = signed_distances(vertices, gt)
     error = {"vertices": vertices.astype(np.float32), "signed_distance": distance.astype(np.float32)}
     if views is not None:
-        error["evaluated"] = cull_to_masks(vertices, views, EVAL_CULL_DILATION, masks=mesh_silhouettes(gt, views),
-                                           require_seen=True)
+        error["evaluated"] = in_object_region(vertices, gt, views, EVAL_CULL_DILATION)
     return error
 
 
