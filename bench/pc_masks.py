@@ -8,7 +8,11 @@ channel mean; ``diffuse_gt``: the true diffuse colour), over all views of each s
 - the channel-mean colour, averaged over the pixels, of the training colour s0 / 2, of PC's
   target (I_diff on specular pixels, I_chro on overexposed ones with a donor) and of the true
   diffuse colour, on three sets: the specular pixels, the overexposed ones, and the "halo", the
-  highlight pixels that no mask reaches (there the target stays the training colour).
+  highlight pixels that no mask reaches (there the target stays the training colour);
+- on the "ring", the 1-px ring around the reflective masks inside the object mask: the training
+  colour, I_diff (= I_min, what PC's target would be there if the masks were grown) and the
+  diffuse colour. I_min keeps (1 - DoLP) of the specular reflection, so growing the masks would
+  remove only part of a halo.
 
 The masks use the paper's thresholds (``CorrectionConfig``: brightness >= 160/255 of the
 channel-mean peak); ``--intensity-low`` changes the lower brightness bound. docs/results.md
@@ -23,6 +27,7 @@ import argparse
 import json
 
 import torch
+import torch.nn.functional as F
 
 from polargs_plugin.config import CorrectionConfig
 from polargs_plugin.correction import compute_polar_maps
@@ -32,7 +37,7 @@ from polargs_plugin.data.synthetic import generate_scene
 
 def scene_figures(name: str, views: int, size: int, config: CorrectionConfig) -> dict[str, float]:
     scene = generate_scene(name, num_views=views, width=size, height=size)
-    sums = {key: torch.zeros(3, dtype=torch.float64) for key in ("specular", "overexposed", "halo")}
+    sums = {key: torch.zeros(3, dtype=torch.float64) for key in ("specular", "overexposed", "halo", "ring")}
     counts = dict.fromkeys(sums, 0)
     highlights = reflective = covered = 0
     for view, diffuse, highlight in zip(scene.views, scene.diffuse_gt, scene.highlight_masks):
@@ -44,10 +49,13 @@ def scene_figures(name: str, views: int, size: int, config: CorrectionConfig) ->
         reflective += int((specular | overexposed).sum())
         covered += int((highlight & (specular | overexposed)).sum())
         image = view.image.mean(0)
+        reflective_map = (specular | overexposed).float()[None, None]
+        ring = (F.max_pool2d(reflective_map, 3, stride=1, padding=1)[0, 0] > 0) & ~(specular | overexposed) & view.mask[0]
         sets = {
             "specular": (specular, maps.i_diff.mean(0)),
             "overexposed": (overexposed & i_chro_valid, maps.i_chro.mean(0)),
             "halo": (highlight & ~specular & ~overexposed, image),
+            "ring": (ring, maps.i_diff.mean(0)),
         }
         for key, (pixels, target) in sets.items():
             values = torch.stack([image[pixels], target[pixels], diffuse.mean(0)[pixels]]).double()
@@ -78,10 +86,11 @@ def main() -> None:
     print(f"{args.views} views {args.size}x{args.size}, reflective masks at brightness >= {args.intensity_low:.3f}; "
           f"colours: channel mean of the training colour / PC's target / the true diffuse colour")
     print(f"{'scene':<21}{'highlight px':>13}{'coverage':>10}{'outside':>9}"
-          f"{'specular px: colour / target / diffuse':>42}{'overexposed px: ...':>34}{'halo px: ...':>34}")
+          f"{'specular px: colour / target / diffuse':>42}{'overexposed px: ...':>34}{'halo px: ...':>34}"
+          f"{'ring px: colour / I_diff / diffuse':>38}")
     for name, f in results.items():
         row = f"{name:<21}{f['highlight_pixels']:>13d}{f['coverage']:>10.2f}{f['outside']:>9.2f}"
-        for key, width in (("specular", 42), ("overexposed", 34), ("halo", 34)):
+        for key, width in (("specular", 42), ("overexposed", 34), ("halo", 34), ("ring", 38)):
             cell = (f"{f[f'{key}_pixels']:d}: {f[f'{key}_colour']:.3f} / {f[f'{key}_target']:.3f} / "
                     f"{f[f'{key}_diffuse']:.3f}")
             row += f"{cell:>{width}}"
