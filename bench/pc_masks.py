@@ -39,31 +39,30 @@ def scene_figures(name: str, views: int, size: int, config: CorrectionConfig) ->
     scene = generate_scene(name, num_views=views, width=size, height=size)
     sums = {key: torch.zeros(3, dtype=torch.float64) for key in ("specular", "overexposed", "halo", "ring")}
     counts = dict.fromkeys(sums, 0)
-    highlights = reflective = covered = 0
+    highlights = reflective_total = covered = 0
     for view, diffuse, highlight in zip(scene.views, scene.diffuse_gt, scene.highlight_masks):
         maps = compute_polar_maps(view.stokes, view.mask, config)
         specular, overexposed = maps.specular_mask[0], maps.overexposed_mask[0]
         i_chro_valid = maps.extras["i_chro_valid"].reshape(specular.shape)
-        highlight = highlight[0]
+        highlight, reflective = highlight[0], specular | overexposed
         highlights += int(highlight.sum())
-        reflective += int((specular | overexposed).sum())
-        covered += int((highlight & (specular | overexposed)).sum())
-        image = view.image.mean(0)
-        reflective_map = (specular | overexposed).float()[None, None]
-        ring = (F.max_pool2d(reflective_map, 3, stride=1, padding=1)[0, 0] > 0) & ~(specular | overexposed) & view.mask[0]
+        reflective_total += int(reflective.sum())
+        covered += int((highlight & reflective).sum())
+        image, i_diff = view.image.mean(0), maps.i_diff.mean(0)
+        grown = F.max_pool2d(reflective.float()[None, None], 3, stride=1, padding=1)[0, 0] > 0
         sets = {
-            "specular": (specular, maps.i_diff.mean(0)),
+            "specular": (specular, i_diff),
             "overexposed": (overexposed & i_chro_valid, maps.i_chro.mean(0)),
-            "halo": (highlight & ~specular & ~overexposed, image),
-            "ring": (ring, maps.i_diff.mean(0)),
+            "halo": (highlight & ~reflective, image),
+            "ring": (grown & ~reflective & view.mask[0], i_diff),
         }
         for key, (pixels, target) in sets.items():
             values = torch.stack([image[pixels], target[pixels], diffuse.mean(0)[pixels]]).double()
             sums[key] += values.sum(1)
             counts[key] += int(pixels.sum())
     figures: dict[str, float] = {
-        "highlight_pixels": highlights, "reflective_pixels": reflective,
-        "coverage": covered / max(highlights, 1), "outside": (reflective - covered) / max(reflective, 1),
+        "highlight_pixels": highlights, "reflective_pixels": reflective_total,
+        "coverage": covered / max(highlights, 1), "outside": (reflective_total - covered) / max(reflective_total, 1),
     }
     for key, total in sums.items():
         mean = (total / max(counts[key], 1)).tolist()

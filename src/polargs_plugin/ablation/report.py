@@ -208,18 +208,18 @@ def _mesh_error_figure(reps: list[tuple[str, Path]], path: Path, units: str) -> 
     for variant, folder in reps:
         err, views = _load_npz(folder / "mesh_error.npz"), _load_npz(folder / "views.npz")
         if err is not None and views is not None and _evaluated(err).any():
-            data.append((variant, err, views))
+            data.append((variant, err, views, _evaluated(err)))
     if not data:
         return None
-    allabs = np.concatenate([np.abs(e["signed_distance"][_evaluated(e)]) for _, e, _ in data])
+    allabs = np.concatenate([np.abs(e["signed_distance"][flag]) for _, e, _, flag in data])
     vmax = float(np.percentile(allabs, 95)) or 1e-3
     scale = ScalarMappable(Normalize(-vmax, vmax), "coolwarm")
     fig = _figure(2.6 * len(data) + 0.8, 2.9)
     axes = np.atleast_1d(fig.subplots(1, len(data)))
-    for ax, (variant, err, views) in zip(axes, data):
+    for ax, (variant, err, views, flag) in zip(axes, data):
         K, w2c = views["0/K"], views["0/world_to_camera"]
         height, width = views["0/alpha"].shape[-2:]
-        points, dist, evaluated = err["vertices"].astype(np.float64), err["signed_distance"], _evaluated(err)
+        points, dist, evaluated = err["vertices"].astype(np.float64), err["signed_distance"], flag
         if len(points) > 80_000:
             keep = np.random.default_rng(0).choice(len(points), 80_000, replace=False)
             points, dist, evaluated = points[keep], dist[keep], evaluated[keep]
@@ -239,7 +239,7 @@ def _mesh_error_figure(reps: list[tuple[str, Path]], path: Path, units: str) -> 
         ax.set_xlim(0, width)
         ax.set_ylim(height, 0)
         ax.set_aspect("equal")
-        median = np.median(err["signed_distance"][_evaluated(err)])
+        median = np.median(err["signed_distance"][flag])
         ax.set_title(f"{variant}: median {median:+.3g}", fontsize=8, color=COLORS.get(variant, "black"))
         _off(ax)
     fig.colorbar(scale, ax=list(axes), shrink=0.8, label=f"signed distance ({units})\ngrey: not evaluated")
