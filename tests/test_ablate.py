@@ -27,6 +27,7 @@ from polargs_plugin.ablation.grid import expand, run_grid
 from polargs_plugin.ablation.scenes import SceneSpec, parse_scene
 from polargs_plugin.ablation.variants import VARIANTS, variant_configs
 from polargs_plugin.cli import main
+from polargs_plugin.data.synthetic import GENERATOR_VERSION
 
 TINY = ["--views", "6", "--size", "32x32", "--factor", "0.002", "--eval-samples", "20000",
         "--train-set", "num_init_points=300", "--train-set", "density.max_gaussians=800", "--jobs", "1", "--quiet"]
@@ -60,7 +61,7 @@ def test_variant_switches():
 
 def test_cell_is_plain_data(tmp_path):
     scene = parse_scene(SCENE, tmp_path / "cache", 6, 32, 32)
-    assert scene.bundled == SCENE and scene.path.endswith(f"{SCENE}-6v-32x32-s0")
+    assert scene.bundled == SCENE and scene.path.endswith(f"{SCENE}-6v-32x32-s0-g{GENERATOR_VERSION}")
     named = parse_scene(f"mine={tmp_path}/data:{tmp_path}/gt.ply", tmp_path)
     assert (named.name, named.gt_mesh, named.bundled) == ("mine", str(tmp_path / "gt.ply"), None)
     assert parse_scene(str(tmp_path), tmp_path).name == tmp_path.name
@@ -252,6 +253,7 @@ def _check_run(folder: Path, variant: str) -> dict:
     assert summary["train_config"]["iterations"] == 60
     assert (summary["polar_config"] is None) == (variant == "base")
     assert "commit" in summary["git"] and summary["timings"]["total"] > 0
+    assert summary["eval"]["normal_region"] == "object"  # the normals of the object the Chamfer measures
     figures = summary["figures"]
     for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians",
                 "chamfer_uncapped", "completeness_uncapped", "signed_distance_median"):

@@ -134,8 +134,9 @@ from polargs_plugin.backends.reference.strategy import DensityConfig
 from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
 from polargs_plugin.data.synthetic import generate_scene
 
-# 6 neighbouring views of an 18-view orbit (every view has sources within the triangulation limits)
-views = generate_scene("glossy_plane_sphere", num_views=18, width=32, height=32).views[:6]
+# 6 neighbouring views of an 18-view orbit (every view has sources within the triangulation limits);
+# surface masks: the textured floor inside them gives PatchMatch depth for Dense to append at
+views = generate_scene("glossy_plane_sphere", num_views=18, width=32, height=32, mask="surface").views[:6]
 cfg = PolarConfig.cpu_demo()
 cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 20, 200, 10
 cfg.densify.patchmatch.iterations = 2

@@ -84,3 +84,49 @@ def test_eval_uses_object_only_gt_of_a_scene_folder(tmp_path, capsys):
     assert metrics["gt"].endswith("gt_mesh.ply") and metrics["chamfer"]["region"] == "all"
     assert abs(metrics["chamfer"]["signed_distance_median"]) < 1e-4
     assert "signed distance" in capsys.readouterr().out
+
+
+def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch):
+    """With surface masks, glossy_plane_sphere's masks and GT normal maps cover the floor too (as a
+    capture's masks may cover the table an object stands on); with `--gt` (region object)
+    the normal MAE is the sphere's, like Chamfer. The stand-in renders the GT normals except on floor
+    pixels clear of the sphere, where it is off by exactly 90 deg. Independent truth: those pixels
+    from the closed-form ray - sphere distance, so the object MAE is 0 and the masks MAE is
+    90 deg x their share of each mask."""
+    import numpy as np
+
+    import polargs_plugin.cli.mesh as cli_mesh
+    from polargs_plugin.data.registry import load_views
+    from polargs_plugin.data.scene_format import read_gt_mesh, write_scene
+
+    write_scene(generate_scene("glossy_plane_sphere", num_views=3, width=48, height=48, mask="surface"), tmp_path / "scene")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        views = load_views(tmp_path / "scene")
+    normals, expected = {}, []
+    for view in views:
+        K, w2c = view.K.numpy(), view.world_to_camera.numpy()
+        centre = -w2c[:3, :3].T @ w2c[:3, 3]
+        u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
+        dirs = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ w2c[:3, :3]
+        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        to_centre = np.array([0.0, 0.0, 0.5]) - centre
+        miss = np.linalg.norm(np.cross(dirs, to_centre), axis=-1) > 1.03 * 0.5  # ray - centre distance
+        gt = view.normal_gt
+        wrong = torch.from_numpy(miss)[None] & view.mask.bool() & (gt.norm(dim=0, keepdim=True) > 0)
+        side = torch.linalg.cross(gt, torch.tensor([0.3, 0.5, 0.8])[:, None, None].expand_as(gt), dim=0)
+        normals[view.name] = torch.where(wrong, side / side.norm(dim=0, keepdim=True).clamp_min(1e-12), gt)
+        expected.append(90.0 * float(wrong.sum()) / float((view.mask.bool() & (gt.norm(dim=0, keepdim=True) > 0)).sum()))
+    assert min(expected) > 10.0  # the floor is a large share of every mask
+    monkeypatch.setattr(cli_mesh, "load_run", lambda run_dir: (NormalStandIn(normals), views))
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    import open3d as o3d
+
+    o3d.io.write_triangle_mesh(str(run_dir / "tsdf_mesh.ply"), read_gt_mesh(tmp_path / "scene"))
+    assert main(["eval", str(run_dir), "--normals", "--quiet"]) == 0
+    masks = json.loads((run_dir / "metrics.json").read_text())
+    assert masks["normal_region"] == "masks" and masks["normal_mae_deg"] == pytest.approx(np.mean(expected), abs=0.05)
+    assert main(["eval", str(run_dir), "--normals", "--gt", str(tmp_path / "scene"), "--num-samples", "5000", "--quiet"]) == 0
+    obj = json.loads((run_dir / "metrics.json").read_text())
+    assert obj["normal_region"] == "object" and obj["normal_mae_deg"] == pytest.approx(0.0, abs=0.05)

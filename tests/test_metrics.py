@@ -307,3 +307,31 @@ def test_chamfer_equals_the_direct_computation_and_the_analytic_distances():
     assert whole["accuracy_uncapped"] == pytest.approx(truth.mean(), abs=1e-3)
     assert whole["completeness"] == whole["completeness_uncapped"] == pytest.approx(0.05, abs=2e-3)
     assert whole["signed_distance_median"] == pytest.approx(-0.05, abs=2e-3) and whole["inside_fraction"] == 1.0
+
+
+def test_mesh_silhouettes_leave_out_what_an_occluder_hides():
+    """With the whole scene as occluder, a pixel counts only where the object itself is seen.
+    Independent truth: the ray - wall intersection in closed form (a wall x = 1.8, 0 <= y <= 2,
+    |z| <= 2 between the camera at (3, 0, 1) and the unit sphere hides the sphere's y > 0 side)."""
+    from polargs_plugin.metrics import mesh_silhouettes
+
+    eye = np.array([3.0, 0.0, 1.0])
+    view = silhouette_view(eye)
+    ball = sphere(1.0)
+    wall = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector([[1.8, 0, -2], [1.8, 2, -2], [1.8, 2, 2], [1.8, 0, 2]]),
+        o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]),
+    )
+    alone = mesh_silhouettes(ball, [view])[0]
+    assert np.array_equal(mesh_silhouettes(ball, [view], occluder=ball)[0], alone)  # it does not hide itself
+    seen = mesh_silhouettes(ball, [view], occluder=ball + wall)[0]
+
+    size, focal = view.width, 40.0
+    u, v = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+    rays = np.stack([(u - size / 2) / focal, (v - size / 2) / focal, np.ones_like(u)], -1)
+    dirs = rays @ view.world_to_camera.numpy()[:3, :3]  # world directions R^T d
+    t = (1.8 - eye[0]) / dirs[..., 0]
+    y, z = t * dirs[..., 1], eye[2] + t * dirs[..., 2]
+    behind_wall = (t > 0) & (y >= 0) & (y <= 2) & (np.abs(z) <= 2)
+    assert np.array_equal(seen, alone & ~behind_wall)
+    assert 0.3 < (alone & behind_wall).sum() / alone.sum() < 0.7

@@ -269,6 +269,8 @@ def test_sensor_rejects_bad_bits():
 @pytest.mark.parametrize("name", ["glossy_plane_sphere", "shiny_torus", "bumpy_mixed"])
 def test_named_scenes_have_object_highlights_and_consistent_fields(name):
     scene = generate_scene(name, num_views=4, width=48, height=40, seed=3)
+    surface = generate_scene(name, num_views=4, width=48, height=40, seed=3, mask="surface")
+    assert (scene.meta["mask"], surface.meta["mask"]) == ("object", "surface")
     assert len(scene.views) == len(scene.angle_images) == len(scene.highlight_masks) == 4
     assert scene.meta["azimuth_model"] == "perspective" and scene.meta["scene"] == name
     highlights = torch.stack(scene.highlight_masks)
@@ -278,8 +280,12 @@ def test_named_scenes_have_object_highlights_and_consistent_fields(name):
         assert view.K.dtype == torch.float64 and view.world_to_camera.shape == (4, 4)
         assert 0.05 < view.mask.float().mean() < 0.95
         assert torch.all(scene.highlight_masks[i] <= view.mask)
-        assert torch.all(scene.specular_gt[i][:, ~view.mask[0]] == 0)
-        assert torch.all(view.depth_gt[view.mask] > 0) and torch.all(view.depth_gt[~view.mask] == 0)
+        seen = surface.views[i].mask  # every surface: the object and, on glossy_plane_sphere, the floor
+        assert torch.all(view.mask <= seen) and torch.all(scene.specular_gt[i][:, ~seen[0]] == 0)
+        assert torch.equal(view.mask, seen) == (name != "glossy_plane_sphere")
+        for gt_map in (view.depth_gt, view.normal_gt):  # the object's GT only: 0 outside the mask
+            assert torch.all(gt_map[:, ~view.mask[0]] == 0)
+        assert torch.all(view.depth_gt[view.mask] > 0) and torch.equal(surface.views[i].depth_gt[view.mask], view.depth_gt[view.mask])
         # Noise-free expectation of the training colour is diffuse + specular (clipped per angle).
         unclipped = ~scene.overexposed_masks[i][0]
         err = (view.image - (scene.diffuse_gt[i] + scene.specular_gt[i]))[:, unclipped]

@@ -182,20 +182,37 @@ def _camera(view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return K, w2c, -w2c[:3, :3].T @ w2c[:3, 3]
 
 
-def mesh_silhouettes(mesh: MeshLike, views: Sequence[View]) -> list[np.ndarray]:
-    """(H, W) bool silhouette of ``mesh`` in each view (ray cast through the pixel centres)."""
+def _first_hit_depths(scene: o3d.t.geometry.RaycastingScene, view: View) -> np.ndarray:
+    """(H, W) camera-z depth of the first hit along each pixel-centre ray, inf where none."""
+    K, w2c, centre = _camera(view)
+    u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
+    rays_cam = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ np.linalg.inv(K).T
+    dirs = rays_cam @ w2c[:3, :3]  # R^T d for row vectors; camera z of d is 1, so t = depth
+    rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], 1).astype(np.float32)
+    return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64).reshape(view.height, view.width)
+
+
+def mesh_silhouettes(mesh: MeshLike, views: Sequence[View], occluder: MeshLike | None = None) -> list[np.ndarray]:
+    """(H, W) bool silhouette of ``mesh`` in each view (ray cast through the pixel centres).
+
+    With ``occluder`` (the whole scene, e.g. the object and the floor it stands on), a pixel
+    counts only where nothing of the occluder lies in front of ``mesh`` (beyond 1e-4 x its
+    bounding-box diagonal): the pixels where ``mesh`` itself is seen.
+    """
     scene = _raycasting_scene(mesh)
+    blocker = tolerance = None
+    if occluder is not None:
+        blocker = _raycasting_scene(occluder)
+        vertices, _ = _mesh_arrays(occluder)
+        tolerance = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
     out = []
     for view in views:
-        K, w2c, centre = _camera(view)
-        u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
-        rays_cam = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ np.linalg.inv(K).T
-        dirs = rays_cam @ w2c[:3, :3]  # R^T d for row vectors
-        rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], 1).astype(np.float32)
-        hit = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
-        out.append(hit.reshape(view.height, view.width))
+        depth = _first_hit_depths(scene, view)
+        seen = np.isfinite(depth)
+        if blocker is not None:
+            seen &= ~(_first_hit_depths(blocker, view) < depth - tolerance)
+        out.append(seen)
     return out
-
 
 
 def in_object_region(points: np.ndarray, gt: MeshLike, views: Sequence[View], dilation_px: int = 2) -> np.ndarray:

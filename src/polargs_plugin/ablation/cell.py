@@ -446,7 +446,8 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
             "units": chamfer.get("units", "scene units"),
         },
         eval={"culled": bool(eval_args.cull), "num_samples": eval_args.num_samples,
-              "max_dist": chamfer.get("max_dist"), "fscore_threshold": chamfer.get("fscore_threshold")},
+              "max_dist": chamfer.get("max_dist"), "fscore_threshold": chamfer.get("fscore_threshold"),
+              "normal_region": metrics.get("normal_region")},
         files=sorted(p.name for p in tmp.iterdir() if p.name != SUMMARY_NAME) + [SUMMARY_NAME],
     )
     _write_json(tmp / SUMMARY_NAME, summary)

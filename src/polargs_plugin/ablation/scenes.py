@@ -4,8 +4,8 @@ dataset folders with a ground-truth mesh.
 Spelling on the command line (``polargs ablate --scenes``, comma-separated):
 
 - ``glossy_plane_sphere``: a bundled scene (``polargs generate --help`` lists them), generated
-  with ``--views`` / ``--size`` into ``<cache>/<name>-<V>v-<W>x<H>-s<seed>/`` (reused when present;
-  the folder appears complete or not at all);
+  with ``--views`` / ``--size`` into ``<cache>/<name>-<V>v-<W>x<H>-s<seed>-g<generator version>/``
+  (reused when present; the folder appears complete or not at all);
 - ``NAME=PATH:GT_MESH``: a dataset folder in any supported format and its ground-truth mesh;
 - ``NAME=PATH`` or ``PATH``: the ground-truth mesh is the first of :data:`GT_MESH_NAMES` found in
   the folder (``gt_mesh.ply``, then ``mesh.ply``, which the project's own scene format ships).
@@ -74,7 +74,10 @@ def parse_scene(text: str, cache_dir: str | os.PathLike, views: int = 24, width:
     if not text:
         raise ValueError("empty scene entry")
     if "=" not in text and text in bundled_names():
-        folder = Path(cache_dir).resolve() / f"{text}-{views}v-{width}x{height}-s0"
+        from polargs_plugin.data.synthetic import GENERATOR_VERSION
+
+        # the generator's version in the name: a cache never hands out an older generator's scene
+        folder = Path(cache_dir).resolve() / f"{text}-{views}v-{width}x{height}-s0-g{GENERATOR_VERSION}"
         return SceneSpec(text, str(folder), None, text, views, width, height, 0)
     name, _, rest = text.partition("=") if "=" in text else ("", "", text)
     gt = None

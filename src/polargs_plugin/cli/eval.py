@@ -21,7 +21,8 @@ _EPILOG = """examples:
 RUN_DIR_or_MESH: a run folder (its tsdf_mesh.ply from `polargs mesh` is evaluated; --normals and the
 object region also use its model and views) or a mesh file. Region (default: object when cameras are
 known): predicted points are culled to the dilated silhouettes of the GT mesh and GT points no view
-sees are left out (docs/evaluation.md). Chamfer: accuracy = mean distance predicted -> GT,
+sees are left out, and the normal MAE counts only the pixels where the GT object itself is seen
+(docs/evaluation.md). Chamfer: accuracy = mean distance predicted -> GT,
 completeness = GT -> predicted, chamfer = their mean; distances above --max-dist are dropped (DTU) and
 the uncapped means are reported next to them; defaults are 5 % (outlier cap) and 0.5 % (F-score) of
 the GT bounding-box diagonal. The signed distance (outside positive) tells whether the mesh sits
@@ -82,8 +83,9 @@ def gt_meshes(path: Path) -> tuple[Path, Path | None]:
     return found[0], occluder
 
 
-def _normal_errors(model: Any, views: list, progress: bool = False) -> dict[str, float]:
-    """Per-view normal MAE (degrees) of the rendered normals inside the GT masks."""
+def _normal_errors(model: Any, views: list, progress: bool = False, object_pixels: list | None = None) -> dict[str, float]:
+    """Per-view normal MAE (degrees) of the rendered normals inside the GT masks and, when given,
+    ``object_pixels`` (one (H, W) bool per view: where the GT object itself is seen)."""
     import torch
     from tqdm import tqdm
 
@@ -91,11 +93,13 @@ def _normal_errors(model: Any, views: list, progress: bool = False) -> dict[str,
 
     per_view = {}
     with torch.no_grad():
-        for view in tqdm(views, desc="normal MAE", unit="view", disable=not progress):
+        for index, view in enumerate(tqdm(views, desc="normal MAE", unit="view", disable=not progress)):
             if view.normal_gt is None:
                 continue
             valid = view.normal_gt.norm(dim=0, keepdim=True) > 0
             mask = valid if view.mask is None else view.mask.bool() & valid
+            if object_pixels is not None:
+                mask = mask & torch.from_numpy(object_pixels[index])[None]
             if not bool(mask.any()):
                 continue  # the object is out of this view
             normal = model.render(view).normal.cpu()
@@ -133,7 +137,9 @@ def format_table(metrics: dict[str, Any]) -> str:
                          f"mean {cd['signed_distance_mean']:+.4g}, {100 * cd['inside_fraction']:.1f} % inside"))
         rows.append(("samples (pred / GT)", f"{cd['num_pred_points']} / {cd['num_gt_points']}"))
     if metrics.get("normal_mae_deg") is not None:
-        rows.append(("normal MAE", f"{metrics['normal_mae_deg']:.3f} deg over {len(metrics['normal_mae_per_view'])} views"))
+        region = metrics.get("normal_region", "masks")
+        rows.append(("normal MAE", f"{metrics['normal_mae_deg']:.3f} deg over {len(metrics['normal_mae_per_view'])} views "
+                     f"(region {region})"))
     if not rows:
         return ""
     width = max(len(name) for name, _ in rows)
@@ -169,7 +175,7 @@ def _run(args: argparse.Namespace) -> int:
     from polargs_plugin.cli.mesh import MESH_FILE, load_run
     from polargs_plugin.io import PolarInputError, atomic_write
     from polargs_plugin.mesh import read_mesh
-    from polargs_plugin.metrics import chamfer_distance
+    from polargs_plugin.metrics import chamfer_distance, mesh_silhouettes
 
     target: Path = args.target
     progress = not getattr(args, "quiet", False)
@@ -234,11 +240,16 @@ def _run(args: argparse.Namespace) -> int:
             source = getattr(views[0], "source", "") or str(target) if views else str(target)
             raise PolarInputError(source, "--normals: the dataset has no ground-truth normal maps "
                                   "(docs/readers.md lists which readers load them)")
-        per_view = _normal_errors(model, with_gt, progress)
+        object_pixels = None
+        if args.gt is not None and region == "object":
+            # the same object as Chamfer's: a support plane in the masks (and GT normal maps) is left out
+            object_pixels = mesh_silhouettes(gt, with_gt, occluder)
+        per_view = _normal_errors(model, with_gt, progress, object_pixels)
         if not per_view:
             raise PolarInputError(target, "--normals: no view has ground-truth normals inside its mask")
         metrics["normal_mae_per_view"] = per_view
         metrics["normal_mae_deg"] = sum(per_view.values()) / len(per_view)
+        metrics["normal_region"] = "masks" if object_pixels is None else "object"
 
     out = args.out or (target / "metrics.json" if is_run else target.with_name(target.stem + ".metrics.json"))
     try:

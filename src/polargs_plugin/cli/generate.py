@@ -35,7 +35,7 @@ _SCENE_MARKERS = ("scene.json", "cameras.json")
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``generate`` subcommand."""
-    from polargs_plugin.data.synthetic import SCENE_NAMES
+    from polargs_plugin.data.synthetic import MASK_KINDS, SCENE_NAMES
 
     parser = subparsers.add_parser(
         "generate",
@@ -56,6 +56,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--noise", type=float, default=0.005, help="Gaussian noise std per angle image (default 0.005)")
     parser.add_argument("--bits", type=int, choices=(8, 16), default=8, help="sensor bit depth (default 8)")
     parser.add_argument("--ior", type=float, default=1.5, help="refractive index for the Fresnel DoLP (default 1.5)")
+    parser.add_argument("--mask", choices=MASK_KINDS, default="object",
+                        help="what the masks mark: object = the object's own pixels, a floor it stands on is "
+                        "background (default); surface = every surface seen, the floor included")
     parser.add_argument("--pictures", action="store_true", help="also save AoLP/DoLP pictures per view under OUT/pictures")
     parser.set_defaults(func=run)
 
@@ -136,6 +139,7 @@ def _generate(args: argparse.Namespace, folder: Path) -> int:
         noise_std=args.noise,
         quantize_bits=args.bits,
         refractive_index=args.ior,
+        mask=args.mask,
         progress=True,
     )
     rendered = time.perf_counter() - start

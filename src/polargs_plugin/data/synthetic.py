@@ -49,6 +49,8 @@ __all__ = [
     "SCENE_NAMES",
     "AZIMUTH_MODEL",
     "QUANTIZE_BITS",
+    "MASK_KINDS",
+    "GENERATOR_VERSION",
     "SMALL_SETTINGS",
     "SyntheticScene",
     "RenderedView",
@@ -62,6 +64,14 @@ SCENE_NAMES: tuple[str, ...] = tuple(SCENE_BUILDERS)
 #: Azimuth model used to render AoLP: the perspective phase angle, the physical model of an
 #: on-sensor (division-of-focal-plane) polarizer grid (Chen et al. ECCV 2022).
 AZIMUTH_MODEL = "perspective"
+#: What a view's mask marks (``generate_scene(mask=...)``): ``"object"``, the pixels where the
+#: object to reconstruct is seen (the scene format's object mask, as real object datasets ship
+#: it); ``"surface"``, every pixel that sees some surface, a floor it stands on included.
+MASK_KINDS = ("object", "surface")
+#: Bumped whenever the same settings would generate different files, so that caches keyed by
+#: settings (``polargs ablate --scene-cache``) never hand out an older generator's scene.
+#: 2: masks mark the object only by default (was: every surface).
+GENERATOR_VERSION = 2
 #: Supported sensor bit depths (angle images are always quantised, as a real sensor's are).
 QUANTIZE_BITS = (8, 16)
 #: A scene size for tests and smoke runs: ``generate_scene(name, **SMALL_SETTINGS)``.
@@ -78,6 +88,7 @@ class RenderedView:
 
     Attributes:
         mask: (1, H, W) bool, ray hit the mesh.
+        object_mask: (1, H, W) bool, ray hit the object first (``SceneSpec.object_triangles``).
         depth: (1, H, W) camera-z depth (0 outside the mask).
         normal: (3, H, W) unit camera-frame shading normals facing the camera (0 outside).
         diffuse: (3, H, W) diffuse colour c_d (background level outside the mask).
@@ -89,6 +100,7 @@ class RenderedView:
     """
 
     mask: Tensor
+    object_mask: Tensor
     depth: Tensor
     normal: Tensor
     diffuse: Tensor
@@ -105,12 +117,13 @@ class SyntheticScene:
 
     Attributes:
         name: scene name.
-        views: one :class:`View` per camera (stokes from the quantised angle images; mask,
-            normal_gt, depth_gt filled).
+        views: one :class:`View` per camera (stokes from the quantised angle images; mask (the
+            object's pixels unless generated with ``mask="surface"``), normal_gt and depth_gt
+            (0 outside the mask) filled).
         angle_images: per view (4, 3, H, W) float32 images at 0/45/90/135 deg, in [0, 1].
         diffuse_gt: per view (3, H, W) float32 true diffuse colour (s0 / 2 units; the backdrop
-            outside the mask), before noise and clipping.
-        specular_gt: per view (3, H, W) float32 true specular colour (0 outside the mask).
+            where no surface is hit), before noise and clipping.
+        specular_gt: per view (3, H, W) float32 true specular colour (0 where no surface is hit).
         highlight_masks: per view (1, H, W) bool, mask & mean_c specular_gt >= highlight threshold.
         overexposed_masks: per view (1, H, W) bool, some angle image of some channel clipped at 1.
         mesh_vertices: (V, 3) float64 ground-truth mesh vertices (world frame), the whole scene.
@@ -183,6 +196,7 @@ class _Hits:
     normal: np.ndarray
     face: np.ndarray
     material: np.ndarray
+    on_object: np.ndarray
 
 
 class SceneRenderer:
@@ -200,6 +214,7 @@ class SceneRenderer:
         self.spec = spec
         self.refractive_index = float(refractive_index)
         self.shadows = shadows
+        self._on_object = spec.object_mask()
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(
             o3d.core.Tensor(spec.vertices.astype(np.float32)), o3d.core.Tensor(spec.triangles.astype(np.uint32))
@@ -240,6 +255,8 @@ class SceneRenderer:
         backdrop = np.zeros((hit.size, 3))
         backdrop[~hit] = self._backdrop(dirs[~hit])
         mask = torch.from_numpy(hit.reshape(1, height, width))
+        object_hit = np.zeros_like(hit)
+        object_hit[hit] = hits.on_object
         diffuse_img = image(diffuse) + torch.from_numpy(np.ascontiguousarray(backdrop.T.reshape(3, height, width)))
         specular_img = image(specular)
         normal_img = image(hits.normal @ rotation.T)
@@ -251,6 +268,7 @@ class SceneRenderer:
         )
         return RenderedView(
             mask=mask,
+            object_mask=torch.from_numpy(object_hit.reshape(1, height, width)),
             depth=image(hits.depth),
             normal=normal_img,
             diffuse=diffuse_img,
@@ -284,6 +302,7 @@ class SceneRenderer:
             normal=normal,
             face=face,
             material=spec.triangle_material[triangle],
+            on_object=self._on_object[triangle],
         )
 
     def _shade(self, hits: _Hits, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -382,6 +401,7 @@ def generate_scene(
     *,
     shadows: bool = True,
     highlight_threshold: float = 0.1,
+    mask: str = "object",
     progress: bool = False,
 ) -> SyntheticScene:
     """Render a named procedural scene from ``num_views`` cameras orbiting it.
@@ -401,6 +421,11 @@ def generate_scene(
         refractive_index: n for the Fresnel DoLP.
         shadows: cast shadows from the lights.
         highlight_threshold: channel-mean specular colour above which a pixel is a highlight.
+        mask: what the views' masks mark, one of :data:`MASK_KINDS`: ``"object"`` (default), the
+            pixels where the object itself is seen, so a floor it stands on is background as in
+            real object datasets; ``"surface"``, every pixel that sees a surface, so the object's
+            outline over the floor lies inside the mask (an occlusion edge no mask marks; see
+            docs/evaluation.md "The mask's edge"). GT depth and normals are 0 outside the mask.
         progress: show a tqdm progress bar over views.
 
     Returns:
@@ -413,6 +438,8 @@ def generate_scene(
     """
     if num_views < 1 or width < 1 or height < 1:
         raise ValueError(f"need num_views, width, height >= 1, got {num_views}, {width}, {height}")
+    if mask not in MASK_KINDS:
+        raise ValueError(f"mask must be one of {', '.join(MASK_KINDS)}, got {mask!r}")
     spec = name if isinstance(name, SceneSpec) else build_scene(name)
     renderer = SceneRenderer(spec, refractive_index, shadows)
     # Field of view is horizontal; keep the object's pixel size independent of the aspect ratio.
@@ -434,30 +461,34 @@ def generate_scene(
     for index in tqdm(range(num_views), desc=f"rendering {spec.name}", unit="view", disable=not progress):
         clean = renderer.render(K, cameras[index], width, height)
         angles, stokes, overexposed = apply_sensor(clean.stokes, np.random.default_rng(streams[index]), noise_std, quantize_bits)
+        view_mask = clean.object_mask if mask == "object" else clean.mask
         out.views.append(
             View(
                 name=f"view_{index:03d}",
                 K=torch.from_numpy(K.copy()),
                 world_to_camera=torch.from_numpy(cameras[index].copy()),
                 stokes=stokes,
-                mask=clean.mask,
-                normal_gt=clean.normal.to(torch.float32),
-                depth_gt=clean.depth.to(torch.float32),
+                mask=view_mask,
+                normal_gt=torch.where(view_mask, clean.normal, 0.0).to(torch.float32),
+                depth_gt=torch.where(view_mask, clean.depth, 0.0).to(torch.float32),
                 source=f"synthetic:{spec.name}",
             )
         )
         out.angle_images.append(angles)
         out.diffuse_gt.append(clean.diffuse.to(torch.float32))
         out.specular_gt.append(clean.specular.to(torch.float32))
-        out.highlight_masks.append(clean.mask & (clean.specular.mean(dim=0, keepdim=True) >= highlight_threshold))
+        out.highlight_masks.append(view_mask & (clean.specular.mean(dim=0, keepdim=True) >= highlight_threshold))
         out.overexposed_masks.append(overexposed)
-    out.meta = _meta(spec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows, highlight_threshold)
+    out.meta = _meta(spec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
+                     highlight_threshold, mask)
     return out
 
 
-def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows, highlight_threshold) -> dict:
+def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
+          highlight_threshold, mask) -> dict:
     return {
         "generator": "polargs_plugin.data.synthetic",
+        "generator_version": GENERATOR_VERSION,
         "scene": spec.name,
         "description": spec.description,
         "num_views": num_views,
@@ -478,6 +509,7 @@ def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_b
         "background": {"kind": "unpolarized backdrop textured by world ray direction", "level": spec.background,
                        "texture": asdict(_BACKDROP_TEXTURE)},
         "highlight_threshold": highlight_threshold,
+        "mask": mask,
         "materials": [asdict(m) for m in spec.materials],
         "lights": [asdict(light) for light in spec.lights],
         "camera": {"target": list(spec.target), "distance": spec.camera_distance, "fov_deg": spec.fov_deg,
