@@ -42,9 +42,31 @@ def test_generate_small_option(tmp_path):
     assert len(views) == 8 and views[0].stokes.shape[-2:] == (48, 48)
 
 
+def test_generate_masks_mark_the_object_or_every_surface(tmp_path):
+    """Default masks are the GT object's silhouettes (gt_mesh.ply, the sphere: the floor is
+    background); --mask surface gives the whole scene's (mesh.ply, the floor included). Truth: the
+    meshes ray-cast again by `metrics.mesh_silhouettes`."""
+    import json
+
+    from polargs_plugin.data.scene_format import read_gt_mesh
+    from polargs_plugin.metrics import mesh_silhouettes
+
+    for kind in ("object", "surface"):
+        out = tmp_path / kind
+        extra = [] if kind == "object" else ["--mask", "surface"]
+        assert main(["generate", "--scene", "glossy_plane_sphere", "--out", str(out), "--views", "3", "--size", "40x40"] + extra) == 0
+        views = read_scene_folder(out)
+        mesh = read_gt_mesh(out, object_only=kind == "object")
+        for view, silhouette in zip(views, mesh_silhouettes(mesh, views)):
+            assert np.array_equal(view.mask[0].numpy(), silhouette)
+        assert json.loads((out / "scene.json").read_text())["mask"] == kind
+    sphere, everything = read_scene_folder(tmp_path / "object"), read_scene_folder(tmp_path / "surface")
+    assert all(2 * int(a.mask.sum()) < int(b.mask.sum()) for a, b in zip(sphere, everything))
+
+
 @pytest.mark.parametrize(
     "extra",
-    [["--size", "12by12"], ["--size", "4x4"], ["--views", "0"], ["--bits", "12"], ["--scene", "nope"]],
+    [["--size", "12by12"], ["--size", "4x4"], ["--views", "0"], ["--bits", "12"], ["--scene", "nope"], ["--mask", "floor"]],
 )
 def test_generate_rejects_bad_arguments(tmp_path, extra, capsys):
     argv = ["generate", "--scene", "shiny_torus", "--out", str(tmp_path / "o")] + extra

@@ -7,7 +7,8 @@ The renderer lives in :mod:`polargs_plugin.data.synthetic`.
 Scenes (each chosen to be hard for photometric 3D Gaussian Splatting, as targeted by PolarGS):
 
 - ``glossy_plane_sphere``: a glossy, textureless red sphere resting on a weakly textured matte
-  plane; highlights move with the view and nothing but shading constrains the sphere.
+  plane; highlights move with the view and nothing but shading constrains the sphere. The plane
+  is support (``object_triangles``): not in the masks, not in the evaluation's GT.
 - ``shiny_torus``: a tilted shiny torus with a weak procedural texture, lit by three lights,
   giving small sharp highlights on a concave/convex surface.
 - ``bumpy_mixed``: a displaced icosphere of two materials (glossy ceramic and textured matte
