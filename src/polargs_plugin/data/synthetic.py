@@ -3,7 +3,9 @@
 Pipeline per view (docs/dataset-format.md describes the model and the files):
 
 1. Ray casting (open3d ``RaycastingScene``) through pixel centres K^-1 (u + 0.5, v + 0.5, 1): hit
-   mask, camera-z depth, interpolated shading normal (camera frame, facing the camera).
+   mask, camera-z depth, interpolated shading normal (camera frame, facing the camera). The views'
+   masks mark the pixels whose first hit is the object (``SceneSpec.object_triangles``; a floor
+   is background) unless ``generate_scene(mask="surface")``.
 2. Shading in training-colour units (the colour a trainer sees, s0 / 2): Lambertian diffuse
    c_d = albedo * (ambient + sum_l E_l max(n.l, 0) vis_l) and a white Blinn-Phong highlight
    c_s = k_s sum_l E_l max(n.h, 0)^shininess [n.l > 0] vis_l, with lights fixed in the world.
