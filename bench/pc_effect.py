@@ -8,7 +8,8 @@ Printed per run:
   highlight masks (the true diffuse colour is what PC's I_diff / I_chro aim at), with the same
   error of the input image itself as a reference;
 - normal MAE (degrees) of the rendered normals against the ground truth, inside the object masks;
-- Chamfer distance and F-score of the TSDF mesh of the rendered depths against the GT mesh.
+- Chamfer distance and F-score of the TSDF mesh of the rendered depths against the object-only GT
+  mesh in `polargs eval`'s object region.
 
 Runs a few minutes on 2 cores. Usage:
 python bench/pc_effect.py [--scene bumpy_mixed] [--views 16] [--size 96] [--factor 0.05] [--threads 2]
@@ -56,7 +57,8 @@ def run(scene, correction: bool, factor: float, seed: int) -> dict[str, float]:
         [r.depth.cpu() for r in renders], colours, [v.K for v in views], [v.world_to_camera for v in views],
         masks=[v.mask for v in views], **mesh_settings("synthetic"),
     )
-    cd = chamfer_distance(mesh, (scene.mesh_vertices, scene.mesh_triangles), num_samples=200_000)
+    # the object-only GT in `polargs eval`'s object region (glossy_plane_sphere's floor is support)
+    cd = chamfer_distance(mesh, scene.object_mesh(), num_samples=200_000, cull_views=views, region="object")
     return {
         "highlight_err": highlight_error(colours, scene),
         "normal_mae": normal_mae(normals, [v.normal_gt for v in views], [v.mask for v in views]),
