@@ -439,3 +439,31 @@ def test_a_grid_stopped_by_sigterm_leaves_no_worker_running(tmp_path):
         for pid in [proc.pid, *_children(proc.pid)]:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_progress_shows_the_time_left_only_once_it_means_something(tmp_path, monkeypatch):
+    """Before any cell has ended and below a tenth of the work, no time is guessed; after, the
+    time left is the average rate since the start applied to the work left."""
+    import io
+
+    from polargs_plugin.ablation import grid
+
+    cells = expand([SceneSpec("tiny", str(tmp_path / "tiny"))], ["base", "reg"], [0], tmp_path / "out")
+    stream = io.StringIO()
+    bar = grid._Progress(cells, True, stream)
+    first, second = cells[0].name, cells[1].name
+    iterations, extra = bar.weights[first]
+    total = bar.bar.total
+    bar.update(first, "train", 1, 100)  # a few iterations after a long set-up
+    assert bar.bar.n < 0.1 * total and "time left: after the first cell" in bar.bar.postfix
+    clock = [1000.0]
+    monkeypatch.setattr(bar.bar, "_time", lambda: clock[0])
+    bar.bar.start_t = clock[0] - 600.0  # 600 s elapsed
+    bar.finish(first, True, "first cell done")
+    half = iterations + 2 * extra
+    assert bar.bar.n == half and total == 2 * half
+    # half the work in 600 s: 600 s left
+    assert re.search(r"~10:00 left, 1/2 cells done", bar.bar.postfix), bar.bar.postfix
+    bar.update(second, "mesh", 0, 1)
+    bar.close()
+    assert "first cell done" in stream.getvalue()

@@ -80,7 +80,14 @@ class GridResult:
 # ------------------------------------------------------------------------------------ progress
 class _Progress:
     """One bar for the whole grid, in work units: a cell's iterations, plus a tenth of them each
-    for meshing and for evaluation (with the report pictures)."""
+    for meshing and for evaluation (with the report pictures).
+
+    The remaining time is the average rate since the start applied to the work left, shown once a
+    cell has ended or a tenth of the work is done. Before that it would be guessed from scene
+    generation, SfM and the first (cheapest) iterations, and came out hours off."""
+
+    #: share of the work after which the remaining time is shown even if no cell has ended yet
+    ETA_AFTER = 0.1
 
     def __init__(self, cells: Sequence[Cell], enabled: bool, stream: TextIO):
         self.lock = threading.Lock()
@@ -98,14 +105,21 @@ class _Progress:
             from tqdm import tqdm
 
             self.bar = tqdm(total=total, desc="ablate", unit="step", file=stream, dynamic_ncols=True,
-                            mininterval=0.5, bar_format="{l_bar}{bar}| {percentage:3.0f}% [{elapsed}<{remaining}]{postfix}")
+                            mininterval=0.5, bar_format="{l_bar}{bar}| {percentage:3.0f}% [{elapsed}]{postfix}")
             self._postfix()
 
     def _postfix(self) -> None:
         if self.bar is not None:
             c = self.counts
-            self.bar.set_postfix_str(f"{c['done']}/{len(self.weights)} cells done, {c['running']} running, {c['failed']} failed",
-                                     refresh=False)
+            self.bar.set_postfix_str(f"{self._remaining()}, {c['done']}/{len(self.weights)} cells done, "
+                                     f"{c['running']} running, {c['failed']} failed", refresh=False)
+
+    def _remaining(self) -> str:
+        done, total = self.bar.n, self.bar.total
+        if self.counts["done"] + self.counts["failed"] == 0 and done < self.ETA_AFTER * total:
+            return "time left: after the first cell"
+        elapsed = self.bar.format_dict["elapsed"]
+        return f"~{self.bar.format_interval(elapsed * (total - done) / max(done, 1))} left"
 
     def update(self, name: str, phase: str, done: int, total: int) -> None:
         iterations, extra = self.weights[name]
@@ -123,6 +137,7 @@ class _Progress:
                 self.done[name] = units
                 if self.bar is not None:
                     self.bar.update(delta)
+                    self._postfix()
 
     def finish(self, name: str, ok: bool, line: str) -> None:
         iterations, extra = self.weights[name]
