@@ -17,7 +17,7 @@ Printed per scene, image and group: pixels, median relative depth error (PatchMa
 these cameras, Dense's seeding threshold), and the median normal error (degrees). GT is used
 only to start PatchMatch and to score it.
 
-Usage (about 4 minutes on 2 cores):
+Usage (about 20 seconds on 2 cores):
 python bench/patchmatch_bias.py [--scenes torus_knot,shiny_torus,bumpy_mixed,glossy_plane_sphere]
     [--refs 4] [--threads 2] [--set densify.patchmatch.KEY=VALUE ...]
 """
