@@ -441,9 +441,10 @@ def test_a_grid_stopped_by_sigterm_leaves_no_worker_running(tmp_path):
                 os.kill(pid, signal.SIGKILL)
 
 
-def test_progress_shows_the_time_left_only_once_it_means_something(tmp_path, monkeypatch):
+def test_progress_shows_the_time_left_only_once_it_means_something(tmp_path):
     """Before any cell has ended and below a tenth of the work, no time is guessed; after, the
-    time left is the average rate since the start applied to the work left."""
+    time left is the work left at the average rate since the first training step (the set-up
+    before it, scene generation and SfM, does not count)."""
     import io
 
     from polargs_plugin.ablation import grid
@@ -451,18 +452,20 @@ def test_progress_shows_the_time_left_only_once_it_means_something(tmp_path, mon
     cells = expand([SceneSpec("tiny", str(tmp_path / "tiny"))], ["base", "reg"], [0], tmp_path / "out")
     stream = io.StringIO()
     bar = grid._Progress(cells, True, stream)
+    clock = [5000.0]  # a long set-up already behind us: it must not enter the rate
+    bar.clock = lambda: clock[0]
     first, second = cells[0].name, cells[1].name
     iterations, extra = bar.weights[first]
-    total = bar.bar.total
-    bar.update(first, "train", 1, 100)  # a few iterations after a long set-up
-    assert bar.bar.n < 0.1 * total and "time left: after the first cell" in bar.bar.postfix
-    clock = [1000.0]
-    monkeypatch.setattr(bar.bar, "_time", lambda: clock[0])
-    bar.bar.start_t = clock[0] - 600.0  # 600 s elapsed
-    bar.finish(first, True, "first cell done")
     half = iterations + 2 * extra
-    assert bar.bar.n == half and total == 2 * half
-    # half the work in 600 s: 600 s left
+    assert bar.bar.total == 2 * half
+    assert "time left: after the first cell" in bar.bar.postfix
+    bar.update(first, "train", 1, 100)  # the first training step
+    started = bar.done[first]
+    assert 0 < started < 0.1 * bar.bar.total and "time left: after the first cell" in bar.bar.postfix
+    # the rest of the first cell takes as long as the second cell's work will at that rate: 600 s
+    clock[0] += 600.0 * (half - started) / half
+    bar.finish(first, True, "first cell done")
+    assert bar.bar.n == half
     assert re.search(r"~10:00 left, 1/2 cells done", bar.bar.postfix), bar.bar.postfix
     bar.update(second, "mesh", 0, 1)
     bar.close()

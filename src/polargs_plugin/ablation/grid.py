@@ -23,7 +23,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence, TextIO
+from typing import Any, Callable, Sequence, TextIO
 
 from polargs_plugin.ablation.cell import Cell, CellFailed, is_done, run_cell
 from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene
@@ -82,9 +82,10 @@ class _Progress:
     """One bar for the whole grid, in work units: a cell's iterations, plus a tenth of them each
     for meshing and for evaluation (with the report pictures).
 
-    The remaining time is the average rate since the start applied to the work left, shown once a
-    cell has ended or a tenth of the work is done. Before that it would be guessed from scene
-    generation, SfM and the first (cheapest) iterations, and came out hours off."""
+    The remaining time is the average rate since the first training step applied to the work
+    left, shown once a cell has ended or a tenth of the work is done. tqdm's own estimate counted
+    scene generation and SfM (a minute or more before any step) and came out hours off; the
+    set-up of later cells still enters the average, as it should."""
 
     #: share of the work after which the remaining time is shown even if no cell has ended yet
     ETA_AFTER = 0.1
@@ -99,6 +100,8 @@ class _Progress:
         self.done: dict[str, int] = dict.fromkeys(self.weights, 0)
         self.counts = {"done": 0, "failed": 0, "running": 0}
         self.started: set[str] = set()
+        self.clock: Callable[[], float] = time.monotonic
+        self.first_work: tuple[float, int] | None = None  # (clock, units done) at the first training step
         total = sum(i + 2 * e for i, e in self.weights.values())
         self.bar = None
         if enabled:
@@ -116,10 +119,12 @@ class _Progress:
 
     def _remaining(self) -> str:
         done, total = self.bar.n, self.bar.total
-        if self.counts["done"] + self.counts["failed"] == 0 and done < self.ETA_AFTER * total:
+        ended = self.counts["done"] + self.counts["failed"]
+        if self.first_work is None or (ended == 0 and done < self.ETA_AFTER * total):
             return "time left: after the first cell"
-        elapsed = self.bar.format_dict["elapsed"]
-        return f"~{self.bar.format_interval(elapsed * (total - done) / max(done, 1))} left"
+        since, units = self.first_work
+        rate = max(done - units, 1) / max(self.clock() - since, 1e-9)
+        return f"~{self.bar.format_interval((total - done) / rate)} left"
 
     def update(self, name: str, phase: str, done: int, total: int) -> None:
         iterations, extra = self.weights[name]
@@ -135,6 +140,8 @@ class _Progress:
             delta = units - self.done[name]
             if delta > 0:
                 self.done[name] = units
+                if self.first_work is None:
+                    self.first_work = (self.clock(), sum(self.done.values()))
                 if self.bar is not None:
                     self.bar.update(delta)
                     self._postfix()
