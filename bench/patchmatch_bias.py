@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 
 import torch
 
@@ -43,10 +42,7 @@ BEHIND = 0.005
 
 
 def load() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "load average %.2f, %.2f, %.2f" % os.getloadavg()
+    return "load average %.2f, %.2f, %.2f" % os.getloadavg()
 
 
 def scene_errors(name: str, refs: int, config: PolarConfig) -> dict[str, dict[str, list[torch.Tensor]]]:
