@@ -49,6 +49,8 @@ class DensityConfig:
     # no clone / split beyond this count (None: unlimited, as vanilla). It bounds vanilla density
     # control only: Gaussians appended by the PolarGS densify hook are not capped (capping them
     # at a full model would switch Dense off), so a Full run can exceed it by Dense's appends.
+    # They count towards N all the same: once they take N past the cap, clone and split stop
+    # until pruning brings N back below it (the CPU preset reaches its 6000 by iteration ~250).
     max_gaussians: int | None = None
 
     def scaled(self, factor: float) -> "DensityConfig":
