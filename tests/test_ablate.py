@@ -470,3 +470,35 @@ def test_progress_shows_the_time_left_only_once_it_means_something(tmp_path):
     bar.update(second, "mesh", 0, 1)
     bar.close()
     assert "first cell done" in stream.getvalue()
+
+
+def test_progress_rate_leaves_out_a_resumed_runs_checkpoint_and_a_failed_runs_remainder(tmp_path):
+    """A run resumed at half its iterations jumps the bar forward at its first step, and a failed
+    run's unfinished share leaves the bar at once: the time left comes from the work done here."""
+    import io
+
+    from polargs_plugin.ablation import grid
+
+    cells = expand([SceneSpec("tiny", str(tmp_path / "tiny"))], ["base", "reg", "full"], [0], tmp_path / "out")
+    bar = grid._Progress(cells, True, io.StringIO())
+    clock = [100.0]
+    bar.clock = lambda: clock[0]
+    resumed, failing, last = (c.name for c in cells)
+    iterations, extra = bar.weights[resumed]
+    cell_units = iterations + 2 * extra
+    bar.update(resumed, "train", 51, 100)  # the first step after a checkpoint at iteration 50
+    assert bar.bar.n == round(iterations * 0.51) and bar.worked == round(iterations * 0.51) - round(iterations * 0.5)
+    worked_from = bar.worked
+    clock[0] += 300.0
+    bar.finish(resumed, True, "resumed cell done")  # the other half and the evaluation: 300 s
+    bar.update(failing, "train", 1, 100)
+    bar.finish(failing, False, "failed cell")  # its unfinished share leaves the bar, not the rate
+    assert bar.bar.n == 2 * cell_units
+    rate = (bar.worked - worked_from) / 300.0
+    # worked here: the resumed cell's second half and evaluation, the failed cell's first step
+    assert bar.worked - worked_from == cell_units - round(iterations * 0.51) + round(iterations * 0.01)
+    expected = bar.bar.format_interval(cell_units / rate)
+    assert f"~{expected} left, 1/3 cells done" in bar.bar.postfix, (expected, bar.bar.postfix)
+    # a rate over everything the bar moved would say far less (the old estimate)
+    assert bar.bar.format_interval(cell_units / ((bar.bar.n - round(iterations * 0.51)) / 300.0)) != expected
+    bar.close()

@@ -85,7 +85,9 @@ class _Progress:
     The remaining time is the average rate since the first training step applied to the work
     left, shown once a cell has ended or a tenth of the work is done. tqdm's own estimate counted
     scene generation and SfM (a minute or more before any step) and came out hours off; the
-    set-up of later cells still enters the average, as it should."""
+    set-up of later cells still enters the average, as it should. The rate counts only work done
+    in this grid (``worked``): a run resumed from its checkpoint jumps the bar to its iteration at
+    its first step, and a failed run's unfinished work leaves the bar, but neither took time here."""
 
     #: share of the work after which the remaining time is shown even if no cell has ended yet
     ETA_AFTER = 0.1
@@ -101,7 +103,9 @@ class _Progress:
         self.counts = {"done": 0, "failed": 0, "running": 0}
         self.started: set[str] = set()
         self.clock: Callable[[], float] = time.monotonic
-        self.first_work: tuple[float, int] | None = None  # (clock, units done) at the first training step
+        self.worked = 0  # units done by this grid (no resumed part, no failed run's remainder)
+        self.training: set[str] = set()  # cells that have reported a training step
+        self.first_work: tuple[float, int] | None = None  # (clock, units worked) at the first training step
         total = sum(i + 2 * e for i, e in self.weights.values())
         self.bar = None
         if enabled:
@@ -123,7 +127,7 @@ class _Progress:
         if self.first_work is None or (ended == 0 and done < self.ETA_AFTER * total):
             return "time left: after the first cell"
         since, units = self.first_work
-        rate = max(done - units, 1) / max(self.clock() - since, 1e-9)
+        rate = max(self.worked - units, 1) / max(self.clock() - since, 1e-9)
         return f"~{self.bar.format_interval((total - done) / rate)} left"
 
     def update(self, name: str, phase: str, done: int, total: int) -> None:
@@ -140,8 +144,13 @@ class _Progress:
             delta = units - self.done[name]
             if delta > 0:
                 self.done[name] = units
+                self.worked += delta
+                if phase == "train" and name not in self.training:
+                    self.training.add(name)
+                    # the first report comes after one step; a resumed run's checkpoint holds the rest
+                    self.worked -= round(iterations * (done - 1) / max(1, total))
                 if self.first_work is None:
-                    self.first_work = (self.clock(), sum(self.done.values()))
+                    self.first_work = (self.clock(), self.worked)
                 if self.bar is not None:
                     self.bar.update(delta)
                     self._postfix()
@@ -154,6 +163,8 @@ class _Progress:
             self.counts["done" if ok else "failed"] += 1
             delta = iterations + 2 * extra - self.done[name]
             self.done[name] += delta
+            if ok:
+                self.worked += delta
             if self.bar is not None:
                 self.bar.update(delta)
                 self._postfix()
