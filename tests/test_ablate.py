@@ -271,6 +271,11 @@ def _check_run(folder: Path, variant: str) -> dict:
         assert silhouette.dtype == bool and silhouette.shape == views[f"{i}/alpha"].shape
         assert 0 < silhouette.mean() < 1
     assert error["evaluated"].shape == error["signed_distance"].shape and error["evaluated"].any()
+    # the scene folder is evaluated as `polargs eval --gt FOLDER` does: the object-only GT, with
+    # the whole-scene mesh beside it hiding what it hides
+    metrics = json.loads((folder / "metrics.json").read_text())
+    gt, occluder = Path(metrics["gt"]), Path(metrics["occluder"])
+    assert (gt.name, occluder.name) == ("gt_mesh.ply", "mesh.ply") and gt.parent == occluder.parent
     return summary
 
 

@@ -335,3 +335,27 @@ def test_mesh_silhouettes_leave_out_what_an_occluder_hides():
     behind_wall = (t > 0) & (y >= 0) & (y <= 2) & (np.abs(z) <= 2)
     assert np.array_equal(seen, alone & ~behind_wall)
     assert 0.3 < (alone & behind_wall).sum() / alone.sum() < 0.7
+
+
+def test_object_region_leaves_out_an_occluder_in_front_of_the_object():
+    """Points on the wall of the test above, on rays from the camera to the sphere's hidden side,
+    lie inside the sphere's own silhouette: kept without the occluder, dropped with it (the
+    evaluation's predicted points of a reconstructed occluder, as the hidden GT is)."""
+    from polargs_plugin.metrics import in_object_region
+
+    eye = np.array([3.0, 0.0, 1.0])
+    view = silhouette_view(eye)
+    ball = sphere(1.0)
+    wall = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector([[1.8, 0, -2], [1.8, 2, -2], [1.8, 2, 2], [1.8, 0, 2]]),
+        o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]),
+    )
+    rng = np.random.default_rng(0)
+    hidden = rng.normal(size=(200, 3)) * 0.1 + [0.85, 0.35, 0.3]
+    hidden /= np.linalg.norm(hidden, axis=1, keepdims=True)  # sphere points on its y > 0 side
+    t = (1.8 - eye[0]) / (hidden[:, 0] - eye[0])
+    on_wall = eye + t[:, None] * (hidden - eye)  # where their rays cross the wall
+    on_wall = on_wall[on_wall[:, 1] > 0.1]  # a few pixels inside the wall's edge y = 0
+    assert len(on_wall) > 150 and (np.abs(on_wall[:, 2]) < 2).all()
+    assert in_object_region(on_wall, ball, [view], 0).all()
+    assert not in_object_region(on_wall, ball, [view], 0, occluder=ball + wall).any()

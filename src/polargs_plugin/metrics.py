@@ -215,11 +215,14 @@ def mesh_silhouettes(mesh: MeshLike, views: Sequence[View], occluder: MeshLike |
     return out
 
 
-def in_object_region(points: np.ndarray, gt: MeshLike, views: Sequence[View], dilation_px: int = 2) -> np.ndarray:
+def in_object_region(
+    points: np.ndarray, gt: MeshLike, views: Sequence[View], dilation_px: int = 2, occluder: MeshLike | None = None
+) -> np.ndarray:
     """(N,) bool: the predicted ``points`` (N, 3) that region "object" keeps: seen by some view, and
-    inside the GT mesh's silhouette (:func:`mesh_silhouettes`) dilated by ``dilation_px`` pixels in
-    every view that sees them (:func:`cull_to_masks`)."""
-    return cull_to_masks(points, views, dilation_px, masks=mesh_silhouettes(gt, views), require_seen=True)
+    inside the GT mesh's silhouette (:func:`mesh_silhouettes`, less what ``occluder`` hides there)
+    dilated by ``dilation_px`` pixels in every view that sees them (:func:`cull_to_masks`). So a
+    reconstructed occluder in front of the object is left out, as the object's hidden part is."""
+    return cull_to_masks(points, views, dilation_px, masks=mesh_silhouettes(gt, views, occluder), require_seen=True)
 
 def visible_from_views(
     points: np.ndarray, views: Sequence[View], occluder: MeshLike, tolerance: float | None = None
@@ -321,10 +324,11 @@ def chamfer_distance(
         cull_dilation_px: mask / silhouette dilation radius for culling, in pixels.
         units: label of the distance unit, copied to the output.
         region: one of :data:`REGIONS`; None = "masks" when ``cull_views`` is given, else "all".
-            "object" culls the predicted points to the dilated silhouettes of ``gt`` (and to the
-            images: a point no camera sees is dropped) and keeps the GT points that some view sees (:func:`visible_from_views`, hidden by
-            ``occluder``).
-        occluder: geometry that hides GT points for region "object" (e.g. the whole scene with
+            "object" culls the predicted points to the dilated silhouettes of ``gt`` less what
+            ``occluder`` hides (and to the images: a point no camera sees is dropped;
+            :func:`in_object_region`) and keeps the GT points that some view sees
+            (:func:`visible_from_views`, hidden by ``occluder``).
+        occluder: geometry that hides the GT object for region "object" (e.g. the whole scene with
             its floor); None = ``gt`` itself.
         progress: called with the name of each step before it starts (for progress bars).
 
@@ -364,7 +368,7 @@ def chamfer_distance(
         pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px)]
     elif region == "object":
         step("culling to the object silhouettes")
-        pred_points = pred_points[in_object_region(pred_points, gt, cull_views, cull_dilation_px)]
+        pred_points = pred_points[in_object_region(pred_points, gt, cull_views, cull_dilation_px, occluder)]
         step("GT visibility")
         gt_points = gt_points[visible_from_views(gt_points, cull_views, gt if occluder is None else occluder)]
         if len(gt_points) == 0:

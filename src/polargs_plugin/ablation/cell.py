@@ -401,8 +401,11 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     clock.lap("mesh")
     report("eval", 0, 1)
     has_normals = any(v.normal_gt is not None for v in views)
+    # a scene folder is handed over as `polargs eval --gt FOLDER` takes it: with its whole-scene
+    # mesh.ply beside gt_mesh.ply as the occluder; a GT given as NAME=PATH:GT_MESH has none
+    eval_gt = gt_mesh if cell.scene.gt_mesh else gt_mesh.parent
     eval_args = argparse.Namespace(
-        target=tmp, gt=gt_mesh, normals=has_normals, num_samples=int(cell.eval.get("num_samples", 1_000_000)),
+        target=tmp, gt=eval_gt, normals=has_normals, num_samples=int(cell.eval.get("num_samples", 1_000_000)),
         seed=0, max_dist=None, fscore_threshold=None, units=cell.eval.get("units", "scene units"),
         cull=bool(cell.eval.get("cull", True)), cull_dilation=EVAL_CULL_DILATION, out=None,
     )
@@ -410,7 +413,7 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     metrics = json.loads((tmp / "metrics.json").read_text())
     clock.lap("eval")
     report("pictures", 0, 1)
-    _report_data(trainer, tmp, gt_mesh, eval_args.cull)
+    _report_data(trainer, tmp, *eval_cli.gt_meshes(eval_gt), eval_args.cull)
     clock.lap("pictures")
 
     chamfer = metrics.get("chamfer") or {}
@@ -665,11 +668,12 @@ def report_view_indices(num_views: int) -> list[int]:
     return sorted({0, num_views // 2})[:REPORT_VIEW_COUNT]
 
 
-def _report_data(trainer, tmp: Path, gt_mesh: Path, cull: bool) -> None:
+def _report_data(trainer, tmp: Path, gt_mesh: Path, occluder: Path | None, cull: bool) -> None:
     """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report. views.npz: the report
     views' renders, targets, cameras, GT maps and ``gt_silhouette`` (1, H, W), the GT mesh's
-    silhouette; the mesh error: exact signed distance of the predicted mesh's vertices to the GT
-    mesh, outside positive; with ``cull``, which vertices lie in the region the evaluation measured."""
+    silhouette less what the whole-scene ``occluder`` mesh (or None) hides; the mesh error: exact
+    signed distance of the predicted mesh's vertices to the GT mesh, outside positive; with
+    ``cull``, which vertices lie in the region the evaluation measured."""
     import numpy as np
     import torch
 
@@ -680,7 +684,8 @@ def _report_data(trainer, tmp: Path, gt_mesh: Path, cull: bool) -> None:
     indices = report_view_indices(len(trainer.views))
     views = [trainer.views[i] for i in indices]
     # where the GT object itself is seen: the depth-error picture leaves a support plane out
-    silhouettes = mesh_silhouettes(read_mesh(gt_mesh), views)
+    occluder_mesh = read_mesh(occluder) if occluder is not None else None
+    silhouettes = mesh_silhouettes(read_mesh(gt_mesh), views, occluder_mesh)
     data: dict[str, np.ndarray] = {}
     with torch.no_grad():
         for i, (index, view) in enumerate(zip(indices, views)):
@@ -716,18 +721,19 @@ def _report_data(trainer, tmp: Path, gt_mesh: Path, cull: bool) -> None:
             with atomic_path(tmp / "pc_maps.npz") as path:
                 np.savez_compressed(path, **maps)
 
-    error = mesh_error(tmp / "tsdf_mesh.ply", gt_mesh, trainer.views if cull else None)
+    error = mesh_error(tmp / "tsdf_mesh.ply", gt_mesh, trainer.views if cull else None, occluder_mesh)
     with atomic_path(tmp / "mesh_error.npz") as path:
         np.savez_compressed(path, **error)
 
 
-def mesh_error(mesh: Path, gt_mesh: Path, views: list | None = None) -> dict[str, Any]:
+def mesh_error(mesh: Path, gt_mesh: Path, views: list | None = None, occluder: Any = None) -> dict[str, Any]:
     """mesh_error.npz's arrays: ``vertices`` (V, 3) float32 of the mesh file ``mesh`` and their
     ``signed_distance`` (V,) float32 to the GT mesh (exact closest point, outside positive:
     :func:`polargs_plugin.metrics.signed_distances`); with ``views``, ``evaluated`` (V,) bool: the
     vertices in the evaluation's object region (:func:`polargs_plugin.metrics.in_object_region`
-    with ``EVAL_CULL_DILATION``: the predicted points ``polargs eval`` keeps), so that the picture
-    does not colour the support (a floor) that the figures leave out."""
+    with ``EVAL_CULL_DILATION`` and the whole-scene ``occluder`` mesh or None: the predicted points
+    ``polargs eval`` keeps), so that the picture does not colour the support (a floor) that the
+    figures leave out."""
     import numpy as np
 
     from polargs_plugin.mesh import read_mesh
@@ -740,7 +746,7 @@ def mesh_error(mesh: Path, gt_mesh: Path, views: list | None = None) -> dict[str
     distance = signed_distances(vertices, gt)
     error = {"vertices": vertices.astype(np.float32), "signed_distance": distance.astype(np.float32)}
     if views is not None:
-        error["evaluated"] = in_object_region(vertices, gt, views, EVAL_CULL_DILATION)
+        error["evaluated"] = in_object_region(vertices, gt, views, EVAL_CULL_DILATION, occluder)
     return error
 
 

@@ -8,9 +8,9 @@ import math
 from pathlib import Path
 from typing import Any
 
-#: Mesh files looked up, in order, when ``--gt`` is a folder: the object-only evaluation GT that
-#: the bundled scenes ship, then the whole-scene mesh (older folders, other datasets).
-GT_MESH_NAMES = ("gt_mesh.ply", "mesh.ply")
+# Mesh files looked up, in order, when ``--gt`` is a folder (the same as `polargs ablate`'s): the
+# object-only evaluation GT that the bundled scenes ship, then the whole-scene mesh.
+from polargs_plugin.ablation.scenes import GT_MESH_NAMES
 
 _EPILOG = """examples:
   polargs eval runs/sphere --gt scenes/sphere              # GT = scenes/sphere/gt_mesh.ply (object only)
