@@ -309,6 +309,15 @@ def test_chamfer_equals_the_direct_computation_and_the_analytic_distances():
     assert whole["signed_distance_median"] == pytest.approx(-0.05, abs=2e-3) and whole["inside_fraction"] == 1.0
 
 
+def wall_beside_sphere() -> o3d.geometry.TriangleMesh:
+    """The wall x = 1.8, 0 <= y <= 2, |z| <= 2: between a camera at (3, 0, 1) and the unit sphere,
+    it hides the sphere's y > 0 side."""
+    return o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector([[1.8, 0, -2], [1.8, 2, -2], [1.8, 2, 2], [1.8, 0, 2]]),
+        o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]),
+    )
+
+
 def test_mesh_silhouettes_leave_out_what_an_occluder_hides():
     """With the whole scene as occluder, a pixel counts only where the object itself is seen.
     Independent truth: the ray - wall intersection in closed form (a wall x = 1.8, 0 <= y <= 2,
@@ -318,10 +327,7 @@ def test_mesh_silhouettes_leave_out_what_an_occluder_hides():
     eye = np.array([3.0, 0.0, 1.0])
     view = silhouette_view(eye)
     ball = sphere(1.0)
-    wall = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector([[1.8, 0, -2], [1.8, 2, -2], [1.8, 2, 2], [1.8, 0, 2]]),
-        o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]),
-    )
+    wall = wall_beside_sphere()
     alone = mesh_silhouettes(ball, [view])[0]
     assert np.array_equal(mesh_silhouettes(ball, [view], occluder=ball)[0], alone)  # it does not hide itself
     seen = mesh_silhouettes(ball, [view], occluder=ball + wall)[0]
@@ -346,10 +352,7 @@ def test_object_region_leaves_out_an_occluder_in_front_of_the_object():
     eye = np.array([3.0, 0.0, 1.0])
     view = silhouette_view(eye)
     ball = sphere(1.0)
-    wall = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector([[1.8, 0, -2], [1.8, 2, -2], [1.8, 2, 2], [1.8, 0, 2]]),
-        o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]),
-    )
+    wall = wall_beside_sphere()
     rng = np.random.default_rng(0)
     hidden = rng.normal(size=(200, 3)) * 0.1 + [0.85, 0.35, 0.3]
     hidden /= np.linalg.norm(hidden, axis=1, keepdims=True)  # sphere points on its y > 0 side
