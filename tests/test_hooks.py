@@ -1,5 +1,6 @@
 """PolarHooks end to end on a tiny hand-built scene with a fake render (no trainer, no densify)."""
 
+import dataclasses
 import re
 import sys
 import types
@@ -224,13 +225,25 @@ def test_densify_delegation_normal_loss_and_state(monkeypatch):
     expected = (unit - torch.tensor([0.0, 0, -1])[:, None, None]).abs().sum(0).mean().detach()
     assert abs(logs["l_n"] - float(expected)) < 1e-5
     assert torch.allclose(extra, cfg.losses.alpha_normal * expected, atol=1e-6)
-    # The targets are refreshed only inside the Dense window: L_n stops once it has ended by
-    # normal_until_after_dense iterations (None keeps it to the end).
+    # The targets are refreshed only inside the Dense window: L_n covers every target pixel until
+    # normal_until_after_dense iterations after it, then only the pixels whose rendered normal
+    # lies within normal_hold_deg of the target (None: L_n stops there).
+    tilt = torch.full((H, W), 4.0)  # degrees from the target (0, 0, -1)
+    tilt[:, W // 2 :] = 25.0
+    tilt_rad = torch.deg2rad(tilt)
+    normal = 0.7 * torch.stack([torch.sin(tilt_rad), torch.zeros(H, W), -torch.cos(tilt_rad)])
+    tilted = dataclasses.replace(render, normal=normal.requires_grad_())
+    per_pixel = (normal / 0.7 - torch.tensor([0.0, 0, -1])[:, None, None]).abs().sum(0)
     last = cfg.densify.end_iter + cfg.losses.normal_until_after_dense
-    assert "l_n" in hooks.loss(last, view, render, _gaussians())[1]
-    assert "l_n" not in hooks.loss(last + 1, view, render, _gaussians())[1]
+    assert cfg.losses.normal_hold_deg == 10.0
+    fresh = hooks.loss(last, view, tilted, _gaussians())[1]["l_n"]
+    assert abs(fresh - float(per_pixel.mean())) < 1e-5
+    held = hooks.loss(last + 1, view, tilted, _gaussians())[1]["l_n"]
+    assert abs(held - float(per_pixel[:, : W // 2].sum() / (H * W))) < 1e-5
+    cfg.losses.normal_hold_deg = None
+    assert "l_n" not in hooks.loss(last + 1, view, tilted, _gaussians())[1]
     cfg.losses.normal_until_after_dense = None
-    assert "l_n" in hooks.loss(last + 1, view, render, _gaussians())[1]
+    assert abs(hooks.loss(last + 1, view, tilted, _gaussians())[1]["l_n"] - fresh) < 1e-6
 
     state = hooks.state_dict()
     assert state == {"densifier": {"calls": 1}}

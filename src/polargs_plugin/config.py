@@ -101,9 +101,14 @@ class LossConfig:
     gamma_scale: float = 50.0
     ssim_weight: float = 0.2
     depth_normal_from_iter: int = 7000
-    # docs/patchmatch.md "Effect": N_opt is refreshed only inside the Dense window, so L_n stops
-    # this many iterations after densify.end_iter (one Dense interval); None = to the end.
+    # docs/patchmatch.md "Effect": N_opt is refreshed only inside the Dense window, so L_n on every
+    # target pixel ends this many iterations after densify.end_iter (one Dense interval); None =
+    # on every target pixel to the end.
     normal_until_after_dense: int | None = 100
+    # After that, L_n holds each view's last N_opt where the rendered normal still lies within this
+    # many degrees of it and releases the rest (a stale target the model has left is either wrong
+    # or overruled); None: L_n stops.
+    normal_hold_deg: float | None = 10.0
     use_ref: bool = True
     use_normal: bool = True
     use_depth_normal: bool = True
@@ -234,7 +239,8 @@ class PolarConfig:
     @classmethod
     def cpu_demo(cls, factor: float = 0.5) -> "PolarConfig":
         """Synthetic preset with every iteration schedule multiplied by ``factor``; the default 0.5
-        is the CPU preset's (Dense 500-3500 every 50, L_dn from 3500, L_n until 3550), which goes
+        is the CPU preset's (Dense 500-3500 every 50, L_dn from 3500, L_n on every target pixel until
+        3550 and where the render agrees with it after), which goes
         with ``TrainConfig.cpu()`` (see :func:`polar_schedule_factor`)."""
         cfg = cls.synthetic()
         d = cfg.densify

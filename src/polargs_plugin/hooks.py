@@ -43,7 +43,7 @@ from torch import Tensor
 from polargs_plugin.config import PolarConfig
 from polargs_plugin.correction import compute_polar_maps, input_range, physical_stokes
 from polargs_plugin.io import PolarInputError, atomic_path
-from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, scale_loss
+from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, normals_within, scale_loss
 from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View, describe_view, validate_view
 
 __all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]
@@ -275,8 +275,9 @@ class PolarHooks:
         inside the SSIM windows of reflective pixels (the L1 part stays exact).
 
         Other terms: ``alpha * L_n`` once the densifier holds a PatchMatch normal for this view,
-        until ``losses.normal_until_after_dense`` iterations past the Dense window (after it the
-        targets are no longer refreshed and go stale while the model improves);
+        on all its pixels until ``losses.normal_until_after_dense`` iterations past the Dense
+        window, and after that (the targets are no longer refreshed) only where the rendered
+        normal lies within ``losses.normal_hold_deg`` of the target;
         ``beta * L_dn`` from ``config.losses.depth_normal_from_iter`` on, on ``render.plane_depth``
         (the unbiased plane depth, as PGSR) where the renderer gives it, else on ``render.depth``;
         ``gamma * L_scale``.
@@ -304,10 +305,12 @@ class PolarHooks:
                 pc, l_s, l_o, plain = targets(color, cfg.lambda_ref, cfg.ssim_weight)
                 terms.append(pc)
                 logs.update(l_s=l_s.detach(), l_o=l_o.detach(), l_plain_reflective=plain.detach())
-        if cfg.use_normal and self._normal_targets_fresh(iteration):
+        if cfg.use_normal and self._normal_loss_on(iteration):
             target = self.normal_target(view.name)
             if target is not None:
                 normal, valid = (t.to(color.device) for t in target)
+                if not self._normal_targets_fresh(iteration):
+                    valid = valid & normals_within(render.normal.detach(), normal, cfg.normal_hold_deg)
                 l_n = normal_loss(render.normal, normal, valid)
                 terms.append(cfg.alpha_normal * l_n)
                 logs["l_n"] = l_n.detach()
@@ -340,7 +343,7 @@ class PolarHooks:
         geometry = cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter
         if geometry:
             fields += ["plane_depth" if render.plane_depth is not None else "depth", "normal", "alpha"]
-        elif cfg.use_normal and self._normal_targets_fresh(iteration) and self.normal_target(view.name) is not None:
+        elif cfg.use_normal and self._normal_loss_on(iteration) and self.normal_target(view.name) is not None:
             fields.append("normal")
         _check_render(where, render, view, fields=fields)
         if cfg.use_scale:
@@ -351,13 +354,13 @@ class PolarHooks:
 
     def geometry_needed(self, iteration: int, view_name: str) -> bool:
         """Whether :meth:`loss` reads the render's depth, normal or alpha at this iteration for
-        this view (L_n with a fresh PatchMatch target, or L_dn). An adapter whose trainer renders
+        this view (L_n with a PatchMatch target, or L_dn). An adapter whose trainer renders
         those maps in an extra pass can skip the pass when this is False: :meth:`loss` then reads
         only ``render.color``."""
         cfg = self.config.losses
         if cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter:
             return True
-        return cfg.use_normal and self._normal_targets_fresh(iteration) and self.normal_target(view_name) is not None
+        return cfg.use_normal and self._normal_loss_on(iteration) and self.normal_target(view_name) is not None
 
     # -------------------------------------------------------------------------------- densify
     def densify_due(self, iteration: int) -> bool:
@@ -432,6 +435,9 @@ class PolarHooks:
     def _normal_targets_fresh(self, iteration: int) -> bool:
         after = self.config.losses.normal_until_after_dense
         return after is None or iteration <= self.config.densify.end_iter + after
+
+    def _normal_loss_on(self, iteration: int) -> bool:
+        return self.config.losses.normal_hold_deg is not None or self._normal_targets_fresh(iteration)
 
     def normal_target(self, view_name: str) -> tuple[Tensor, Tensor] | None:
         """The latest PatchMatch normal of a view, ``(normal (3, H, W), valid (1, H, W) bool)``,

@@ -14,6 +14,8 @@ vectors (no 0/0, no sqrt or normalisation at 0).
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -30,6 +32,7 @@ __all__ = [
     "ReflectiveTargets",
     "reflective_replacement",
     "normal_loss",
+    "normals_within",
     "depth_to_points",
     "normal_from_depth",
     "depth_normal_loss",
@@ -332,6 +335,31 @@ def normal_loss(normal: Tensor, target: Tensor, valid: Tensor) -> Tensor:
     """
     per_pixel = (safe_normalize(normal, dim=0) - target).abs().sum(dim=0, keepdim=True)
     return (per_pixel * valid.to(normal.dtype)).sum() / valid[0].numel()
+
+
+def normals_within(normal: Tensor, target: Tensor, max_deg: float) -> Tensor:
+    """Where a normal map lies within ``max_deg`` degrees of a unit target map.
+
+    L_n keeps a stale PatchMatch normal only where the render still agrees with it
+    (``LossConfig.normal_hold_deg``).
+
+    Args:
+        normal: :math:`(3, H, W)` normal, any length (a rendered normal is alpha-weighted); zero
+            vectors agree with nothing.
+        target: :math:`(3, H, W)` unit normal.
+        max_deg: the largest angle, in degrees.
+
+    Returns:
+        :math:`(1, H, W)` bool.
+
+    >>> tilt = math.radians(5.0)
+    >>> normal = torch.tensor([0.0, math.sin(tilt), -math.cos(tilt)]).view(3, 1, 1) * 0.4
+    >>> target = torch.tensor([0.0, 0.0, -1.0]).view(3, 1, 1)
+    >>> bool(normals_within(normal, target, 6.0)), bool(normals_within(normal, target, 4.0))
+    (True, False)
+    """
+    cosine = (safe_normalize(normal, dim=0) * target).sum(dim=0, keepdim=True)
+    return cosine >= math.cos(math.radians(max_deg))
 
 
 def depth_to_points(depth: Tensor, K: Tensor) -> Tensor:

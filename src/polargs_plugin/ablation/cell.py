@@ -44,11 +44,14 @@ import time
 import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, gt_mesh_path
 from polargs_plugin.ablation.variants import DEFAULT_FACTOR, VARIANTS, describe, variant_configs
 from polargs_plugin.io import PolarInputError, atomic_write
+
+if TYPE_CHECKING:  # metrics imports open3d: the cell imports it only when it evaluates
+    from polargs_plugin.metrics import MeshLike
 
 __all__ = ["Cell", "CellFailed", "run_cell", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done",
            "partial_dir", "mark_interrupted", "PARTIAL_DIR"]
@@ -726,7 +729,9 @@ def _report_data(trainer, tmp: Path, gt_mesh: Path, occluder: Path | None, cull:
         np.savez_compressed(path, **error)
 
 
-def mesh_error(mesh: Path, gt_mesh: Path, views: list | None = None, occluder: Any = None) -> dict[str, Any]:
+def mesh_error(
+    mesh: Path, gt_mesh: Path, views: list | None = None, occluder: MeshLike | None = None
+) -> dict[str, Any]:
     """mesh_error.npz's arrays: ``vertices`` (V, 3) float32 of the mesh file ``mesh`` and their
     ``signed_distance`` (V,) float32 to the GT mesh (exact closest point, outside positive:
     :func:`polargs_plugin.metrics.signed_distances`); with ``views``, ``evaluated`` (V,) bool: the
