@@ -9,8 +9,9 @@ densification is meant for; its masks mark the sphere (the floor is background s
 version 2), so PatchMatch works on the textureless sphere alone.
 PatchMatch and the polarimetric filter use the synthetic data's azimuth model
 (``data.synthetic.AZIMUTH_MODEL``, the physical one for an on-sensor polarizer grid), which is
-the synthetic preset's (``PolarConfig.synthetic``, checked here). L_n stops
-``losses.normal_until_after_dense`` iterations after the Dense window (the preset's value).
+the synthetic preset's (``PolarConfig.synthetic``, checked here). L_n covers every target pixel
+until ``losses.normal_until_after_dense`` iterations after the Dense window, then the pixels whose
+render agrees with the target within ``losses.normal_hold_deg`` (the preset's values).
 
 Printed per run: Chamfer distance (accuracy, completeness, mean; scene units) of the TSDF mesh of
 the rendered depths (``mesh.tsdf_fuse``, synthetic preset) against the object-only GT mesh in
@@ -22,7 +23,7 @@ training) and the densifier's per-call counts; training seconds. Also the load a
 
 Usage (a few minutes on 2 cores):
 python bench/dense_effect.py [--scene glossy_plane_sphere] [--views 12] [--size 64] [--factor 0.02] [--threads 2]
-    [--ln-after-dense preset|none|N]
+    [--ln-after-dense preset|none|N] [--hold-deg preset|none|DEG]
 """
 
 from __future__ import annotations
@@ -50,11 +51,18 @@ def load() -> str:
         return "load average %.2f, %.2f, %.2f" % os.getloadavg()
 
 
-def run(scene, dense: bool, factor: float, seed: int, normal_loss: bool = True,
-        ln_after_dense: str = "preset") -> dict[str, float]:
-    polar = PolarConfig.cpu_demo(factor)
+def set_normal_loss_span(polar: PolarConfig, ln_after_dense: str, hold_deg: str) -> None:
+    """The command line's L_n options ("preset", "none" or a number) on ``polar.losses``."""
     if ln_after_dense != "preset":
         polar.losses.normal_until_after_dense = None if ln_after_dense == "none" else int(ln_after_dense)
+    if hold_deg != "preset":
+        polar.losses.normal_hold_deg = None if hold_deg == "none" else float(hold_deg)
+
+
+def run(scene, dense: bool, factor: float, seed: int, normal_loss: bool = True,
+        ln_after_dense: str = "preset", hold_deg: str = "preset") -> dict[str, float]:
+    polar = PolarConfig.cpu_demo(factor)
+    set_normal_loss_span(polar, ln_after_dense, hold_deg)
     polar.densify.enabled = dense
     polar.losses.use_normal = normal_loss
     if {polar.densify.patchmatch.azimuth_model, polar.densify.filters.azimuth_model} != {AZIMUTH_MODEL}:
@@ -106,19 +114,21 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--ln-after-dense", default="preset",
                         help="losses.normal_until_after_dense: 'preset', 'none' (L_n to the end) or iterations")
+    parser.add_argument("--hold-deg", default="preset",
+                        help="losses.normal_hold_deg: 'preset', 'none' (L_n stops after the window) or degrees")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     demo = PolarConfig.cpu_demo(args.factor)
-    if args.ln_after_dense != "preset":
-        demo.losses.normal_until_after_dense = None if args.ln_after_dense == "none" else int(args.ln_after_dense)
-    d, until = demo.densify, demo.losses.normal_until_after_dense
+    set_normal_loss_span(demo, args.ln_after_dense, args.hold_deg)
+    d, until, hold = demo.densify, demo.losses.normal_until_after_dense, demo.losses.normal_hold_deg
     print(f"{load()}\nscene {args.scene}: {args.views} views {args.size}x{args.size}, "
           f"{round(30_000 * args.factor)} iterations, Dense every {d.interval} from {d.start_iter} "
-          f"to {d.end_iter}, L_n until {'the end' if until is None else d.end_iter + until}, "
+          f"to {d.end_iter}, L_n until {'the end' if until is None else d.end_iter + until}"
+          f"{'' if until is None or hold is None else f', then held within {hold:g} deg'}, "
           f"azimuth model {AZIMUTH_MODEL}, seed {args.seed}, {args.threads} threads")
     scene = generate_scene(args.scene, num_views=args.views, width=args.size, height=args.size)
     runs = (("Dense off", False, True), ("Dense on", True, True), ("seeds only", True, False))
-    results = {name: run(scene, on, args.factor, args.seed, l_n, args.ln_after_dense) for name, on, l_n in runs}
+    results = {name: run(scene, on, args.factor, args.seed, l_n, args.ln_after_dense, args.hold_deg) for name, on, l_n in runs}
     keys = ("accuracy", "completeness", "chamfer", "normal_mae", "psnr", "gaussians", "dense_added",
             "nopt_pixels", "l_n_nonzero", "seconds")
     print(f"{'':11s}" + "".join(f"{k:>13s}" for k in keys))

@@ -11,6 +11,7 @@ from polargs_plugin.losses import (
     depth_to_points,
     normal_from_depth,
     normal_loss,
+    normals_within,
     photometric_loss,
     reflective_loss,
     reflective_replacement,
@@ -122,6 +123,25 @@ def test_normal_loss_hand_case_divides_by_view_pixels():
     valid[0, 0, 0] = False
     assert math.isclose(float(normal_loss(normal, target, valid)), 2.8 / 20, rel_tol=1e-12)
     assert float(normal_loss(normal, target, torch.zeros_like(valid))) == 0.0
+
+
+def test_normals_within_random_rotations_any_length_and_zero_vectors():
+    # Targets in random directions; each rendered normal is its target rotated by a known angle
+    # about a random perpendicular axis (Rodrigues), scaled by a random alpha.
+    gen = torch.Generator().manual_seed(3)
+    target = torch.nn.functional.normalize(torch.randn(3, 6, 7, generator=gen, dtype=torch.float64), dim=0)
+    axis = torch.linalg.cross(target, torch.randn(3, 6, 7, generator=gen, dtype=torch.float64), dim=0)
+    axis = torch.nn.functional.normalize(axis, dim=0)
+    angle = torch.linspace(0.0, 30.0, 42, dtype=torch.float64).view(6, 7)
+    rad = torch.deg2rad(angle)
+    rotated = target * torch.cos(rad) + torch.linalg.cross(axis, target, dim=0) * torch.sin(rad)
+    normal = rotated * (0.1 + torch.rand(1, 6, 7, generator=gen, dtype=torch.float64))
+    for max_deg in (5.0, 10.0, 20.0):
+        inside = normals_within(normal, target, max_deg)
+        assert inside.shape == (1, 6, 7)
+        away = (angle - max_deg).abs() > 1e-6  # leave out angles on the boundary itself
+        assert torch.equal(inside[0][away], (angle <= max_deg)[away])
+    assert not normals_within(torch.zeros(3, 2, 2, dtype=torch.float64), target[:, :2, :2], 10.0).any()
 
 
 def test_scale_loss_hand_case():

@@ -1,4 +1,4 @@
-"""Every docstring example of optics/, viz, config and the fused L_dn, run one by one."""
+"""Every docstring example of optics/, viz, config, losses and the fused L_dn, run one by one."""
 
 import doctest
 
@@ -6,6 +6,7 @@ import pytest
 
 import polargs_plugin.config
 import polargs_plugin.depth_normal
+import polargs_plugin.losses
 import polargs_plugin.reflective_window
 import polargs_plugin.optics.azimuth
 import polargs_plugin.optics.fresnel
@@ -21,7 +22,7 @@ MODULES = [
     polargs_plugin.viz,
 ]
 # Modules whose examples run too, without an example required of every public name.
-ALSO_RUN = [polargs_plugin.config, polargs_plugin.depth_normal, polargs_plugin.reflective_window]
+ALSO_RUN = [polargs_plugin.config, polargs_plugin.depth_normal, polargs_plugin.losses, polargs_plugin.reflective_window]
 EXAMPLES = [test for module in MODULES + ALSO_RUN for test in doctest.DocTestFinder().find(module) if test.examples]
 
 
