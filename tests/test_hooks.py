@@ -242,6 +242,11 @@ def test_densify_delegation_normal_loss_and_state(monkeypatch):
     assert abs(held - float(per_pixel[:, : W // 2].sum() / (H * W))) < 1e-5
     cfg.losses.normal_hold_deg = None
     assert "l_n" not in hooks.loss(last + 1, view, tilted, _gaussians())[1]
+    for bad in (0.0, -5.0, 200.0):
+        cfg.losses.normal_hold_deg = bad
+        with pytest.raises(ValueError, match=r"normal_hold_deg must be in \(0, 180\]"):
+            PolarHooks(cfg)
+    cfg.losses.normal_hold_deg = None
     cfg.losses.normal_until_after_dense = None
     assert abs(hooks.loss(last + 1, view, tilted, _gaussians())[1]["l_n"] - fresh) < 1e-6
 

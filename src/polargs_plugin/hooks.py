@@ -141,6 +141,10 @@ class PolarHooks:
 
     def __init__(self, config: PolarConfig | None = None) -> None:
         self.config = config if config is not None else PolarConfig.synthetic()
+        hold = self.config.losses.normal_hold_deg
+        if hold is not None and not 0 < hold <= 180:
+            # Outside (0, 180] L_n would silently hold nothing (or everything) after the window.
+            raise ValueError(f"config.losses.normal_hold_deg must be in (0, 180] degrees or None, got {hold}")
         self.maps: dict[str, PolarMaps] = {}
         self._densifier: Any = None
         self._pending_state: dict[str, Any] | None = None
