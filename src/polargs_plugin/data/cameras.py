@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from polargs_plugin.io import PolarInputError
+from polargs_plugin.io import PolarInputError, atomic_path
 
 __all__ = [
     "look_at",
@@ -37,6 +37,7 @@ __all__ = [
     "load_npz",
     "idr_camera",
     "idr_world_mat",
+    "write_idr_cameras",
     "llff_to_world_to_camera",
     "world_to_camera_to_llff",
     "opengl_c2w_to_world_to_camera",
@@ -271,3 +272,19 @@ def idr_world_mat(K: np.ndarray, world_to_camera: np.ndarray, scale_mat: np.ndar
     K_idr = K.copy()
     K_idr[:2, 2] -= IDR_PIXEL_CENTER_OFFSET
     return projection_matrix(K_idr, world_to_camera) @ np.linalg.inv(scale_mat)
+
+
+def write_idr_cameras(path: str | os.PathLike, cameras: dict[str, tuple[np.ndarray, np.ndarray]], scale_mat: np.ndarray) -> None:
+    """Write an IDR ``cameras.npz`` atomically: ``world_mat_<key>`` and ``scale_mat_<key>`` per camera.
+
+    Args:
+        path: the ``.npz`` file.
+        cameras: {key: (K (3, 3), world_to_camera (4, 4))}, in the order to store them.
+        scale_mat: (4, 4) IDR scale matrix shared by every camera (:func:`idr_world_mat`).
+    """
+    arrays = {}
+    for key, (K, world_to_camera) in cameras.items():
+        arrays[f"world_mat_{key}"] = idr_world_mat(K, world_to_camera, scale_mat)
+        arrays[f"scale_mat_{key}"] = scale_mat
+    with atomic_path(path) as tmp:
+        np.savez(tmp, **arrays)

@@ -266,15 +266,19 @@ def image_scale_ratio(stokes: np.ndarray | torch.Tensor, image: np.ndarray, mask
     return best
 
 
-def warn_image_scale(source: str, stokes, image, mask=None, tolerance: float = 1.25) -> dict:
-    """:func:`image_scale_ratio` plus a warning when k is outside [1/tolerance, tolerance]."""
+def warn_image_scale(source: str, stokes, image, mask=None, tolerance: float = 1.25, stacklevel: int = 2) -> dict:
+    """:func:`image_scale_ratio` plus a warning when k is outside [1/tolerance, tolerance].
+
+    ``stacklevel`` places the warning as ``warnings.warn(..., stacklevel)`` called by the caller
+    of this function would (2: the caller's caller, e.g. the code that called a reader).
+    """
     result = image_scale_ratio(stokes, image, mask)
     k = result["ratio"]
     if np.isfinite(k) and not (1 / tolerance <= k <= tolerance):
         warnings.warn(
             f"{source}: the 8-bit picture is {k:.3g} x s0/2 ({result['encoding']} decoding, {result['pixels']} pixels); "
             f"the Stokes scale of this reader may be off by that factor (docs/readers.md)",
-            stacklevel=3,
+            stacklevel=stacklevel + 1,
         )
     return result
 

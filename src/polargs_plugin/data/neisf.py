@@ -26,7 +26,7 @@ Conversions made by :func:`read_neisf`:
   are, with a warning (:data:`NEISF_BOUNDING_RADIUS`).
 - GT normals (optional, ``normals/img_XXX.png``, 16-bit, n = 2 v / 65535 - 1 as in NeISF's
   ``compute_metrics.py``): frame told from the silhouettes and converted to the OpenCV camera
-  frame, as for NeRSP (:func:`~polargs_plugin.data.nersp.load_normal_gt`).
+  frame, as for NeRSP (:func:`~polargs_plugin.data.views.load_normal_gt`).
 """
 
 from __future__ import annotations
@@ -39,7 +39,8 @@ import numpy as np
 import torch
 
 from polargs_plugin.data import cameras as cam
-from polargs_plugin.data.imageio_utils import check_stokes, read_exr, read_image, read_npy, to_hwc, write_exr, write_npy, write_png
+from polargs_plugin.data.imageio_utils import check_stokes, read_exr, read_npy, to_hwc, write_exr, write_npy, write_png
+from polargs_plugin.data.views import ViewCollector, read_mask
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.types import View
 
@@ -63,6 +64,11 @@ NEISF_NEAR_FAR = (0.0, 6.0)
 
 def _image_name(index: int) -> str:
     return f"img_{index + 1:03d}"
+
+
+def _neisf_mask(first: np.ndarray) -> np.ndarray:
+    """Valid mask pixels as NeISF tells them: 16-bit value / 65535 above the threshold."""
+    return first / 65535.0 > NEISF_MASK_THRESHOLD
 
 
 def read_neisf(folder: str | os.PathLike) -> list[View]:
@@ -92,7 +98,7 @@ def read_neisf(folder: str | os.PathLike) -> list[View]:
             "poses until preprocess_camera_normalization.py rescales them. Read as they are.",
             stacklevel=2,
         )
-    views, frames = [], set()
+    collector = ViewCollector(folder)
     for index, pose in enumerate(poses):
         name = _image_name(index)
         height, width, focal = pose[:, 4]
@@ -113,35 +119,12 @@ def read_neisf(folder: str | os.PathLike) -> list[View]:
         if stokes.shape[-2:] != (int(height), int(width)):
             raise PolarInputError(paths[0], f"size {stokes.shape[-2:]} differs from poses_bounds (H, W) = ({height:g}, {width:g})")
         mask = None
-        mask_path = folder / "masks" / f"{name}.png"
         if (folder / "masks").is_dir():
-            values = read_image(mask_path)
-            if values.shape[:2] != stokes.shape[-2:]:
-                raise PolarInputError(mask_path, f"size {values.shape[:2]} differs from the Stokes {stokes.shape[-2:]}")
-            first = values if values.ndim == 2 else values[..., 0]
-            mask = torch.from_numpy(first / 65535.0 > NEISF_MASK_THRESHOLD)[None]
-        normal_gt = None
+            mask = read_mask(folder / "masks" / f"{name}.png", stokes.shape[-2:], _neisf_mask)
         normal_path = folder / "normals" / f"{name}.png"
-        if normal_path.is_file():
-            from polargs_plugin.data.nersp import load_normal_gt
-
-            normal_gt, frame = load_normal_gt(normal_path, mask, w2c, tuple(stokes.shape[-2:]))
-            frames.add(frame)
-        views.append(
-            View(
-                name=name,
-                K=torch.from_numpy(K),
-                world_to_camera=torch.from_numpy(w2c),
-                stokes=torch.from_numpy(stokes),
-                mask=mask,
-                normal_gt=normal_gt,
-                source=str(folder),
-            )
-        )
-    if frames - {"opencv"}:
-        warnings.warn(f"{folder}: GT normal maps stored in the {'/'.join(sorted(frames))} frame; converted to the "
-                      "OpenCV camera frame (told from the silhouettes)", stacklevel=2)
-    return views
+        normal_gt = collector.normal_gt(normal_path if normal_path.is_file() else None, mask, w2c, tuple(stokes.shape[-2:]))
+        collector.add(name, K, w2c, stokes, mask, normal_gt)
+    return collector.finish()
 
 
 def write_neisf(views: list[View], folder: str | os.PathLike) -> Path:

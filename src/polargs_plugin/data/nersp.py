@@ -23,7 +23,7 @@ Conversions made by :func:`read_nersp`:
   all three, which gives its own half-intensity radiance, i.e. our training colour s0 / 2; PolGS
   does not halve. DoLP and AoLP do not depend on this factor. When ``image/`` holds the 8-bit
   picture of a view, the scale is checked against it (:func:`~polargs_plugin.data.checks.image_scale_ratio`
-  on the first :data:`SCALE_CHECK_VIEWS` views) and a mismatch beyond 25 % is warned about.
+  on the first :data:`~polargs_plugin.data.views.SCALE_CHECK_VIEWS` views) and a mismatch beyond 25 % is warned about.
 - AoLP direction: none. NeRSP and PolGS fit the stored s1, s2 with PANDORA's Stokes model, whose
   reference frame (x_o horizontal, y_o = x_o x o pointing down for an upright camera) gives a
   diffuse AoLP counter-clockwise from image +x towards image up, our convention. (NeRSP's
@@ -40,7 +40,6 @@ Conversions made by :func:`read_nersp`:
 from __future__ import annotations
 
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -56,17 +55,15 @@ from polargs_plugin.data.imageio_utils import (
     write_npy,
     write_png,
 )
-from polargs_plugin.io import PolarInputError, atomic_path
+from polargs_plugin.data.views import ViewCollector
+from polargs_plugin.io import PolarInputError
 from polargs_plugin.optics.stokes import aolp_from_stokes
 from polargs_plugin.types import View
 
-__all__ = ["NERSP_STOKES_FACTOR", "AZIMUTH_MAP_SCALE", "NORMAL_DIRS", "SCALE_CHECK_VIEWS", "read_nersp", "write_nersp"]
+__all__ = ["NERSP_STOKES_FACTOR", "AZIMUTH_MAP_SCALE", "NORMAL_DIRS", "read_nersp", "write_nersp"]
 
 NORMAL_DIRS = ("normal", "normals")
 """Folders searched, in order, for GT normal maps ``<stem>.npy`` / ``.exr`` / ``.png``."""
-
-SCALE_CHECK_VIEWS = 3
-"""Number of views whose 8-bit picture is compared with the Stokes scale."""
 
 NERSP_STOKES_FACTOR = 1.0
 """Stored NeRSP/PolGS ``.npy`` Stokes times this factor = our Stokes (s0 = full intensity)."""
@@ -89,6 +86,16 @@ def _camera_keys(arrays: dict[str, np.ndarray], path: Path) -> tuple[str, int]:
     raise PolarInputError(path, "has neither world_mat_0 (NeRSP, 0-based) nor world_mat_01 (PolGS, 1-based)")
 
 
+def _azimuth_mask(path: Path, shape: tuple[int, int]) -> torch.Tensor:
+    """The object mask of one view: the alpha of its azimuth map, valid where non-zero."""
+    azimuth = read_image(path)
+    if azimuth.ndim != 3 or azimuth.shape[2] not in (2, 4):
+        raise PolarInputError(path, "azimuth map has no alpha channel (the object mask)")
+    if azimuth.shape[:2] != shape:
+        raise PolarInputError(path, f"size {azimuth.shape[:2]} differs from the Stokes {shape}")
+    return torch.from_numpy(azimuth[..., -1] > 0)[None]
+
+
 def _normal_file(folder: Path, stem: str) -> Path | None:
     for sub in NORMAL_DIRS:
         for suffix in (".npy", ".exr", ".png"):
@@ -96,39 +103,6 @@ def _normal_file(folder: Path, stem: str) -> Path | None:
             if path.is_file():
                 return path
     return None
-
-
-def read_normal_map(path: Path, shape: tuple[int, int]) -> np.ndarray:
-    """(3, H, W) float64 normals as stored (``.npy``/``.exr`` float, PNG coded 2 v / max - 1)."""
-    from polargs_plugin.data.imageio_utils import UINT_MAX, read_exr
-
-    if path.suffix == ".npy":
-        values = read_npy(path).astype(np.float64)
-    elif path.suffix == ".exr":
-        values = read_exr(path).astype(np.float64)
-    else:
-        raw = read_image(path)
-        values = raw.astype(np.float64) / UINT_MAX[raw.dtype] * 2.0 - 1.0
-    if values.ndim != 3 or values.shape[2] < 3 or values.shape[:2] != shape:
-        raise PolarInputError(path, f"normal map has shape {values.shape}, expected ({shape[0]}, {shape[1]}, 3)")
-    if not np.isfinite(values[..., :3]).all():
-        raise PolarInputError(path, "normal map has NaN or infinite values")
-    return values[..., :3].transpose(2, 0, 1)
-
-
-def load_normal_gt(path: Path, mask: torch.Tensor | None, w2c: np.ndarray, shape: tuple[int, int]) -> tuple[torch.Tensor, str]:
-    """GT normals of one view in the OpenCV camera frame, and the frame they were stored in."""
-    from polargs_plugin.data.checks import orient_normal_map
-
-    raw = read_normal_map(path, shape)
-    valid = np.linalg.norm(raw, axis=0) > 0.5
-    region = valid if mask is None else (mask[0].numpy() & valid)
-    if not region.any():
-        raise PolarInputError(path, "normal map is empty inside the object mask")
-    normals, frame, score = orient_normal_map(raw, region, w2c)
-    if score < 0.3:
-        raise PolarInputError(path, f"cannot tell the frame of the normal map (best: {frame}, silhouette agreement {score:.2f})")
-    return torch.from_numpy(normals), frame
 
 
 def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: bool = True) -> list[View]:
@@ -155,7 +129,7 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: b
     stems = sorted(p.stem for p in (folder / "s0").glob("*.npy"))
     if not stems:
         raise PolarInputError(folder / "s0", "no .npy Stokes files")
-    views, frames = [], set()
+    collector = ViewCollector(folder, check_scale)
     for stem in stems:
         if not stem.isdigit():
             raise PolarInputError(folder / "s0" / f"{stem}.npy", "file name is not a view index like 0000.npy")
@@ -163,45 +137,11 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: b
         stokes = check_stokes([read_npy(p).astype(np.float32) for p in paths], paths) * NERSP_STOKES_FACTOR
         key = key_format.format(int(stem) + base)
         K, w2c = cam.idr_camera(arrays, f"world_mat_{key}", f"scale_mat_{key}", npz_path, normalize)
-        mask = None
-        if azimuth_dir is not None:
-            mask_path = azimuth_dir / f"{stem}.png"
-            azimuth = read_image(mask_path)
-            if azimuth.ndim != 3 or azimuth.shape[2] not in (2, 4):
-                raise PolarInputError(mask_path, "azimuth map has no alpha channel (the object mask)")
-            if azimuth.shape[:2] != stokes.shape[-2:]:
-                raise PolarInputError(mask_path, f"size {azimuth.shape[:2]} differs from the Stokes {stokes.shape[-2:]}")
-            mask = torch.from_numpy(azimuth[..., -1] > 0)[None]
-        normal_gt = None
-        normal_path = _normal_file(folder, stem)
-        if normal_path is not None:
-            normal_gt, frame = load_normal_gt(normal_path, mask, w2c, tuple(stokes.shape[-2:]))
-            frames.add(frame)
-        if check_scale and len(views) < SCALE_CHECK_VIEWS:
-            picture = next((folder / lay["image"] / f"{stem}.png" for lay in _LAYOUTS.values()
-                            if (folder / lay["image"] / f"{stem}.png").is_file()), None)
-            if picture is not None:
-                from polargs_plugin.data.checks import warn_image_scale
-
-                image = read_image(picture)
-                if image.dtype == np.uint8 and image.shape[:2] == stokes.shape[-2:]:
-                    warn_image_scale(str(picture), stokes, image[..., :3] if image.ndim == 3 else image,
-                                     None if mask is None else mask[0].numpy())
-        views.append(
-            View(
-                name=stem,
-                K=torch.from_numpy(K),
-                world_to_camera=torch.from_numpy(w2c),
-                stokes=torch.from_numpy(stokes),
-                mask=mask,
-                normal_gt=normal_gt,
-                source=str(folder),
-            )
-        )
-    if frames - {"opencv"}:
-        warnings.warn(f"{folder}: GT normal maps stored in the {'/'.join(sorted(frames))} frame; converted to the "
-                      "OpenCV camera frame (told from the silhouettes)", stacklevel=2)
-    return views
+        mask = None if azimuth_dir is None else _azimuth_mask(azimuth_dir / f"{stem}.png", stokes.shape[-2:])
+        normal_gt = collector.normal_gt(_normal_file(folder, stem), mask, w2c, tuple(stokes.shape[-2:]))
+        collector.check_picture([folder / lay["image"] / f"{stem}.png" for lay in _LAYOUTS.values()], stokes, mask)
+        collector.add(stem, K, w2c, stokes, mask, normal_gt)
+    return collector.finish()
 
 
 def write_nersp(
@@ -230,7 +170,7 @@ def write_nersp(
     key_format, base = ("{:d}", 0) if variant == "nersp" else ("{:02d}", 1)
     folder = Path(folder)
     scale_mat = np.eye(4) if scale_mat is None else np.asarray(scale_mat, dtype=np.float64)
-    camera_arrays = {}
+    cameras = {}
     for index, view in enumerate(views):
         stem = f"{index:04d}"
         stokes = view.stokes.detach().cpu().float() / NERSP_STOKES_FACTOR
@@ -243,10 +183,6 @@ def write_nersp(
         code = np.rint(aolp * AZIMUTH_MAP_SCALE).astype(np.uint16)
         alpha = np.full_like(code, 65535) if view.mask is None else view.mask[0].cpu().numpy().astype(np.uint16) * 65535
         write_png(folder / layout["azimuth"] / f"{stem}.png", np.stack([code, code, code, alpha], axis=-1), 16)
-        key = key_format.format(index + base)
-        K, w2c = view.K.double().cpu().numpy(), view.world_to_camera.double().cpu().numpy()
-        camera_arrays[f"world_mat_{key}"] = cam.idr_world_mat(K, w2c, scale_mat)
-        camera_arrays[f"scale_mat_{key}"] = scale_mat
-    with atomic_path(folder / "cameras.npz") as tmp:
-        np.savez(tmp, **camera_arrays)
+        cameras[key_format.format(index + base)] = (view.K.double().cpu().numpy(), view.world_to_camera.double().cpu().numpy())
+    cam.write_idr_cameras(folder / "cameras.npz", cameras, scale_mat)
     return folder

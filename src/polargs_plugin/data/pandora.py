@@ -32,20 +32,11 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from polargs_plugin.data import cameras as cam
-from polargs_plugin.data.imageio_utils import (
-    UINT_MAX,
-    check_stokes,
-    linear_to_srgb,
-    read_hdr,
-    read_image,
-    to_hwc,
-    write_hdr,
-    write_png,
-)
-from polargs_plugin.io import PolarInputError, atomic_path
+from polargs_plugin.data.imageio_utils import check_stokes, linear_to_srgb, read_hdr, to_hwc, write_hdr, write_png
+from polargs_plugin.data.views import ViewCollector, read_mask
+from polargs_plugin.io import PolarInputError
 from polargs_plugin.types import View
 
 __all__ = ["PANDORA_LOADER_FACTOR", "PANDORA_STOKES_FACTOR", "read_pandora", "write_pandora"]
@@ -78,39 +69,17 @@ def read_pandora(folder: str | os.PathLike, normalize: bool = True, check_scale:
     names = sorted(p.name[: -len("_s0.hdr")] for p in stokes_dir.glob("*_s0.hdr"))
     if not names:
         raise PolarInputError(stokes_dir, "no *_s0.hdr files")
-    views = []
+    collector = ViewCollector(folder, check_scale)
     for name in names:
         paths = [stokes_dir / f"{name}_{s}.hdr" for s in ("s0", "s0p1", "s0p2")]
         s0, s0p1, s0p2 = check_stokes([read_hdr(p) for p in paths], paths)
         stokes = np.stack([s0, s0p1 - s0, s0p2 - s0]) * PANDORA_STOKES_FACTOR
         K, w2c = cam.idr_camera(arrays, f"world_mat_{name}", f"scale_mat_{name}", npz_path, normalize)
-        mask = None
         mask_paths = sorted((folder / "mask").glob(f"{name}.*"))
-        if mask_paths:
-            values = read_image(mask_paths[0])
-            if values.shape[:2] != stokes.shape[-2:]:
-                raise PolarInputError(mask_paths[0], f"size {values.shape[:2]} differs from the Stokes {stokes.shape[-2:]}")
-            first = values if values.ndim == 2 else values[..., 0]
-            mask = torch.from_numpy(first > UINT_MAX[values.dtype] / 2)[None]
-        picture = folder / "images" / f"{name}.png"
-        if check_scale and len(views) < 3 and picture.is_file():
-            from polargs_plugin.data.checks import warn_image_scale
-
-            image = read_image(picture)
-            if image.dtype == np.uint8 and image.shape[:2] == stokes.shape[-2:]:
-                warn_image_scale(str(picture), stokes, image[..., :3] if image.ndim == 3 else image,
-                                 None if mask is None else mask[0].numpy())
-        views.append(
-            View(
-                name=name,
-                K=torch.from_numpy(K),
-                world_to_camera=torch.from_numpy(w2c),
-                stokes=torch.from_numpy(stokes.astype(np.float32)),
-                mask=mask,
-                source=str(folder),
-            )
-        )
-    return views
+        mask = read_mask(mask_paths[0], stokes.shape[-2:]) if mask_paths else None
+        collector.check_picture([folder / "images" / f"{name}.png"], stokes, mask)
+        collector.add(name, K, w2c, stokes, mask)
+    return collector.finish()
 
 
 def _non_negative(array: np.ndarray, what: str, view: View) -> np.ndarray:
@@ -129,7 +98,7 @@ def write_pandora(views: list[View], folder: str | os.PathLike, scale_mat: np.nd
     """
     folder = Path(folder)
     scale_mat = np.eye(4) if scale_mat is None else np.asarray(scale_mat, dtype=np.float64)
-    camera_arrays = {}
+    cameras = {}
     for index, view in enumerate(views):
         name = f"{index + 1:02d}"
         if view.stokes.shape[1] != 3:
@@ -141,9 +110,6 @@ def write_pandora(views: list[View], folder: str | os.PathLike, scale_mat: np.nd
         write_png(folder / "images" / f"{name}.png", linear_to_srgb(to_hwc(view.image.cpu())), 8)
         if view.mask is not None:
             write_png(folder / "mask" / f"{name}.png", view.mask[0].cpu().numpy().astype(np.uint8) * 255, 8)
-        K, w2c = view.K.double().cpu().numpy(), view.world_to_camera.double().cpu().numpy()
-        camera_arrays[f"world_mat_{name}"] = cam.idr_world_mat(K, w2c, scale_mat)
-        camera_arrays[f"scale_mat_{name}"] = scale_mat
-    with atomic_path(folder / "cameras.npz") as tmp:
-        np.savez(tmp, **camera_arrays)
+        cameras[name] = (view.K.double().cpu().numpy(), view.world_to_camera.double().cpu().numpy())
+    cam.write_idr_cameras(folder / "cameras.npz", cameras, scale_mat)
     return folder

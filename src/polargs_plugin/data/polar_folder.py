@@ -56,6 +56,7 @@ from polargs_plugin.data.imageio_utils import (
     to_hwc,
     write_png,
 )
+from polargs_plugin.data.views import ViewCollector, read_mask
 from polargs_plugin.io import PolarInputError, atomic_write
 from polargs_plugin.optics.mosaic import (
     MONO_BELOW,
@@ -487,7 +488,7 @@ def read_polar_folder(
     model = read_colmap_model(model_dir)
 
     mask_paths = _files_by_stem(folder / "masks", (".png", ".tif", ".tiff"))
-    views, unregistered = [], []
+    collector, unregistered = ViewCollector(folder), []
     for name, view_stokes in stokes.items():
         camera = _camera_for(name, model)
         if camera is None:
@@ -496,23 +497,9 @@ def read_polar_folder(
         height, width = view_stokes.shape[-2:]
         if (camera.width, camera.height) != (width, height):
             raise PolarInputError(model_dir, f"camera of {name} is {camera.width}x{camera.height}, images are {width}x{height}")
-        mask = None
-        if name in mask_paths:
-            values = read_image(mask_paths[name])
-            if values.shape[:2] != (height, width):
-                raise PolarInputError(mask_paths[name], f"size {values.shape[:2]} differs from the images {(height, width)}")
-            first = values if values.ndim == 2 else values[..., 0]
-            mask = torch.from_numpy(first > UINT_MAX[values.dtype] / 2)[None]
-        views.append(
-            View(
-                name=name,
-                K=torch.from_numpy(camera.K.copy()),
-                world_to_camera=torch.from_numpy(camera.world_to_camera.copy()),
-                stokes=view_stokes.float(),
-                mask=mask,
-                source=str(folder),
-            )
-        )
+        mask = read_mask(mask_paths[name], (height, width), matched="the images") if name in mask_paths else None
+        collector.add(name, camera.K.copy(), camera.world_to_camera.copy(), view_stokes, mask)
+    views = collector.finish()
     if unregistered:
         warnings.warn(f"{folder}: {len(unregistered)} views have no camera in {model_dir}: {unregistered[:10]}", stacklevel=2)
     if not views:
