@@ -8,11 +8,12 @@ import pytest
 import torch
 
 from polargs_plugin.data import cameras as cam
+from polargs_plugin.data.colmap import read_colmap_model
 from polargs_plugin.data.imageio_utils import read_exr, write_exr
 from polargs_plugin.data.neisf import read_neisf, write_neisf
 from polargs_plugin.data.nersp import read_nersp, write_nersp
 from polargs_plugin.data.pandora import read_pandora, write_pandora
-from polargs_plugin.data.polar_folder import read_colmap_model, read_polar_folder, write_polar_folder
+from polargs_plugin.data.polar_folder import read_polar_folder, write_polar_folder
 from polargs_plugin.data.registry import load_views
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.types import View

@@ -12,10 +12,11 @@ import pytest
 import torch
 
 from polargs_plugin.data import cameras as cam
+from polargs_plugin.data.colmap import read_colmap_model
 from polargs_plugin.data.neisf import read_neisf, write_neisf
 from polargs_plugin.data.nersp import read_nersp, write_nersp
 from polargs_plugin.data.pandora import read_pandora, write_pandora
-from polargs_plugin.data.polar_folder import read_colmap_model, write_polar_folder
+from polargs_plugin.data.polar_folder import write_polar_folder
 from polargs_plugin.data.registry import detect_format, load_views
 from polargs_plugin.data.scene_format import write_scene
 from polargs_plugin.data.synthetic import generate_scene

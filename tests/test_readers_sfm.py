@@ -12,7 +12,8 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from polargs_plugin.data import cameras as cam
-from polargs_plugin.data.polar_folder import find_colmap_model, read_polar_folder
+from polargs_plugin.data.colmap import find_colmap_model
+from polargs_plugin.data.polar_folder import read_polar_folder
 
 pycolmap = pytest.importorskip("pycolmap")
 

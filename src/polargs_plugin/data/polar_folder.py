@@ -24,29 +24,26 @@ Conversions made by :func:`read_polar_folder`:
   measured counter-clockwise on screen from image +x, as on Sony DoFP sensors.
 - Cameras: COLMAP world-to-camera (qvec, tvec) in OpenCV axes; COLMAP's pixel centres are at
   +0.5 (upper-left pixel centre (0.5, 0.5)) like ours, so K is taken unchanged. Camera models
-  with distortion are accepted only when every distortion coefficient is zero.
+  with distortion are accepted only when every distortion coefficient is zero
+  (:mod:`polargs_plugin.data.colmap`).
 - Image to camera matching: by file stem of the COLMAP image name; a trailing ``_0``, ``_45``,
   ``_90`` or ``_135`` is ignored, so a model built on the 0-degree images also fits.
 - Without a model and with ``sfm=True`` (the ``sfm`` extra, pycolmap), SfM runs on sRGB 8-bit
   pictures of s0 / 2 and writes its model (text) to ``sparse/0``. It needs at least
-  :data:`SFM_MIN_VIEWS` overlapping views of the object; fewer, or fewer registered, is an error
+  :data:`~polargs_plugin.data.sfm.SFM_MIN_VIEWS` overlapping views of the object; fewer, or fewer registered, is an error
   that says how many were found and registered.
 """
 
 from __future__ import annotations
 
 import os
-import shutil
-import struct
-import tempfile
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from polargs_plugin.data import cameras as cam
+from polargs_plugin.data.colmap import ColmapCamera, find_colmap_model, read_colmap_model, write_colmap_text
 from polargs_plugin.data.imageio_utils import (
     UINT_MAX,
     linear_to_srgb,
@@ -56,9 +53,11 @@ from polargs_plugin.data.imageio_utils import (
     to_hwc,
     write_png,
 )
+from polargs_plugin.data.sfm import run_sfm
 from polargs_plugin.data.views import ViewCollector, read_mask
-from polargs_plugin.io import PolarInputError, atomic_write
+from polargs_plugin.io import PolarInputError
 from polargs_plugin.optics.mosaic import (
+    MOSAIC_PATTERNS,
     MONO_BELOW,
     RGB_ABOVE,
     classify_mosaic,
@@ -70,240 +69,11 @@ from polargs_plugin.optics.mosaic import (
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, intensities_from_stokes, stokes_from_intensities
 from polargs_plugin.types import View
 
-__all__ = [
-    "MOSAIC_PATTERNS",
-    "ColmapCamera",
-    "read_colmap_model",
-    "write_colmap_text",
-    "find_colmap_model",
-    "run_sfm",
-    "read_polar_folder",
-    "write_polar_folder",
-]
-
-MOSAIC_PATTERNS = ("mono", "rgb")
-"""Raw mosaic layouts understood by ``demosaic_polar`` (Sony IMX250MZR / IMX250MYR); readers also
-take ``"auto"`` (told from the frames)."""
-
-SFM_MIN_VIEWS = 3
-"""Fewest overlapping views SfM can build a model from (two to initialise, one more to check it)."""
+__all__ = ["read_polar_folder", "write_polar_folder"]
 
 _IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 _RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 _ANGLE_NAMES = tuple(str(a) for a in POLARIZER_ANGLES_DEG)
-
-# COLMAP camera models: id -> (name, number of params, number of leading pinhole params).
-# The pinhole params are f, cx, cy (1 focal) or fx, fy, cx, cy (2 focals); the rest is distortion.
-_COLMAP_MODELS = {
-    0: ("SIMPLE_PINHOLE", 3),
-    1: ("PINHOLE", 4),
-    2: ("SIMPLE_RADIAL", 4),
-    3: ("RADIAL", 5),
-    4: ("OPENCV", 8),
-    5: ("OPENCV_FISHEYE", 8),
-    6: ("FULL_OPENCV", 12),
-    7: ("FOV", 5),
-    8: ("SIMPLE_RADIAL_FISHEYE", 4),
-    9: ("RADIAL_FISHEYE", 5),
-    10: ("THIN_PRISM_FISHEYE", 12),
-}
-_SINGLE_FOCAL = {"SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "FOV"}
-_MODEL_PARAMS = dict(_COLMAP_MODELS.values())
-
-
-@dataclass
-class ColmapCamera:
-    """One registered COLMAP image: K (3, 3), world_to_camera (4, 4), image size."""
-
-    K: np.ndarray
-    world_to_camera: np.ndarray
-    width: int
-    height: int
-
-
-def _intrinsics(model: str, params: np.ndarray, source: str) -> np.ndarray:
-    if model not in _MODEL_PARAMS or len(params) != _MODEL_PARAMS[model]:
-        raise PolarInputError(source, f"camera model {model} with {len(params)} parameters is not supported")
-    single = model in _SINGLE_FOCAL
-    fx, fy, cx, cy = (params[0], params[0], params[1], params[2]) if single else params[:4]
-    distortion = params[3:] if single else params[4:]
-    if np.any(np.abs(distortion) > 0):
-        raise PolarInputError(
-            source, f"camera model {model} has non-zero distortion {distortion.tolist()}; undistort first (colmap image_undistorter)"
-        )
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-
-
-def _read_text_model(model_dir: Path) -> tuple[dict, list]:
-    """cameras.txt, images.txt -> ({camera_id: (model, W, H, params)}, [(name, qvec, tvec, camera_id)])."""
-
-    def rows(path: Path) -> list[list[str]]:
-        if not path.is_file():
-            raise PolarInputError(path, "file not found")
-        return [line.split() for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
-
-    cameras = {}
-    for row in rows(model_dir / "cameras.txt"):
-        try:
-            cameras[int(row[0])] = (row[1], int(row[2]), int(row[3]), np.array(row[4:], dtype=np.float64))
-        except (IndexError, ValueError):
-            raise PolarInputError(model_dir / "cameras.txt", f"malformed camera line {' '.join(row)!r}") from None
-    images = []
-    # images.txt alternates image lines (10 fields) and points2D lines (3 fields per point, or
-    # empty and dropped above), so the image lines are those with exactly 10 fields.
-    for row in rows(model_dir / "images.txt"):
-        if len(row) == 10 and row[0].isdigit():
-            try:
-                images.append((row[9], np.array(row[1:5], float), np.array(row[5:8], float), int(row[8])))
-            except ValueError:
-                raise PolarInputError(model_dir / "images.txt", f"malformed image line {' '.join(row)!r}") from None
-    return cameras, images
-
-
-def _read_binary_model(model_dir: Path) -> tuple[dict, list]:
-    """cameras.bin, images.bin (COLMAP's little-endian binary model) -> as :func:`_read_text_model`."""
-    cameras = {}
-    path = model_dir / "cameras.bin"
-    try:
-        with open(path, "rb") as f:
-            (count,) = struct.unpack("<Q", f.read(8))
-            for _ in range(count):
-                camera_id, model_id, width, height = struct.unpack("<iiQQ", f.read(24))
-                if model_id not in _COLMAP_MODELS:
-                    raise PolarInputError(path, f"unknown camera model id {model_id}")
-                name, num_params = _COLMAP_MODELS[model_id]
-                params = np.array(struct.unpack(f"<{num_params}d", f.read(8 * num_params)))
-                cameras[camera_id] = (name, width, height, params)
-        images = []
-        path = model_dir / "images.bin"
-        with open(path, "rb") as f:
-            (count,) = struct.unpack("<Q", f.read(8))
-            for _ in range(count):
-                values = struct.unpack("<i7di", f.read(64))
-                name = b""
-                while (char := f.read(1)) not in (b"\x00", b""):
-                    name += char
-                (num_points,) = struct.unpack("<Q", f.read(8))
-                f.seek(24 * num_points, os.SEEK_CUR)  # x, y (double) and point3D id (int64) each
-                images.append((name.decode(), np.array(values[1:5]), np.array(values[5:8]), values[8]))
-    except FileNotFoundError:
-        raise PolarInputError(path, "file not found") from None
-    except struct.error:
-        raise PolarInputError(path, "truncated or malformed COLMAP binary file") from None
-    return cameras, images
-
-
-def read_colmap_model(model_dir: str | os.PathLike) -> dict[str, ColmapCamera]:
-    """Parse a COLMAP sparse model (text or binary, no pycolmap needed).
-
-    Returns:
-        {image name as written in the model: ColmapCamera}.
-    """
-    model_dir = Path(model_dir)
-    text = (model_dir / "cameras.txt").is_file()
-    cameras, images = _read_text_model(model_dir) if text else _read_binary_model(model_dir)
-    source = model_dir / ("images.txt" if text else "images.bin")
-    result = {}
-    for name, qvec, tvec, camera_id in images:
-        if camera_id not in cameras:
-            raise PolarInputError(source, f"image {name} refers to unknown camera {camera_id}")
-        model, width, height, params = cameras[camera_id]
-        K = _intrinsics(model, params, f"{model_dir}[camera {camera_id}]")
-        if not (np.isfinite(qvec).all() and np.linalg.norm(qvec) > 0):
-            raise PolarInputError(source, f"image {name}: invalid quaternion {qvec.tolist()}")
-        w2c = np.eye(4)
-        w2c[:3, :3] = cam.qvec_to_rotmat(qvec)
-        w2c[:3, 3] = tvec
-        cam.validate_camera(K, w2c, f"{source}[{name}]")
-        result[name] = ColmapCamera(K, w2c, int(width), int(height))
-    return result
-
-
-def _numbers(values: np.ndarray) -> list[str]:
-    return [repr(float(v)) for v in values]  # repr: shortest text that parses back exactly
-
-
-def write_colmap_text(model_dir: str | os.PathLike, cameras: dict[str, ColmapCamera]) -> Path:
-    """Write a COLMAP text model (PINHOLE cameras, one per image, no 3D points), atomically per file."""
-    model_dir = Path(model_dir)
-    camera_lines, image_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], ["# Image list"]
-    for index, (name, camera) in enumerate(cameras.items(), start=1):
-        if abs(camera.K[0, 1]) > 1e-12:
-            raise PolarInputError(name, "COLMAP cameras cannot hold a skewed K")
-        pinhole = camera.K[[0, 1, 0, 1], [0, 1, 2, 2]]  # fx, fy, cx, cy
-        camera_lines.append(" ".join([str(index), "PINHOLE", str(camera.width), str(camera.height), *_numbers(pinhole)]))
-        qvec = cam.rotmat_to_qvec(camera.world_to_camera[:3, :3])
-        tvec = camera.world_to_camera[:3, 3]
-        image_lines.append(" ".join([str(index), *_numbers(qvec), *_numbers(tvec), str(index), name]))
-        image_lines.append("")  # no 2D points
-    for filename, lines in (("cameras.txt", camera_lines), ("images.txt", image_lines), ("points3D.txt", ["# 3D point list"])):
-        with atomic_write(model_dir / filename) as f:
-            f.write("\n".join(lines) + "\n")
-    return model_dir
-
-
-def find_colmap_model(folder: str | os.PathLike) -> Path | None:
-    """The first of ``sparse/0``, ``sparse``, ``.`` holding cameras + images (.txt or .bin)."""
-    folder = Path(folder)
-    for candidate in (folder / "sparse" / "0", folder / "sparse", folder):
-        if any((candidate / f"cameras{ext}").is_file() and (candidate / f"images{ext}").is_file() for ext in (".txt", ".bin")):
-            return candidate
-    return None
-
-
-def run_sfm(pictures: dict[str, np.ndarray], model_dir: str | os.PathLike) -> Path:
-    """Structure from motion with pycolmap (the ``sfm`` extra) on 8-bit pictures.
-
-    Args:
-        pictures: {name: (H, W, 3) or (H, W, 1) uint8 RGB picture}; all share one pinhole camera.
-        model_dir: where the largest reconstruction is written as a text model.
-
-    Returns:
-        ``model_dir``.
-    """
-    model_dir = Path(model_dir)
-    advice = (
-        f"it needs at least {SFM_MIN_VIEWS} overlapping views of the object (textured surfaces, neighbouring "
-        "views sharing most of what they see); add views, or give a COLMAP model in sparse/0"
-    )
-    if len(pictures) < SFM_MIN_VIEWS:
-        raise PolarInputError(
-            model_dir.parent.parent if model_dir.name == "0" else model_dir,
-            f"SfM got {len(pictures)} image(s) ({', '.join(sorted(pictures)) or 'none'}); {advice}",
-        )
-    try:
-        import pycolmap  # optional dependency, only needed here
-    except ImportError:
-        raise PolarInputError(
-            model_dir, "SfM needs pycolmap (pip install 'polargs_plugin[sfm]'), or give a COLMAP model in sparse/0"
-        ) from None
-
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        for name, picture in pictures.items():
-            write_png(tmp / "images" / f"{name}.png", picture, 8)
-        database = tmp / "database.db"
-        pycolmap.extract_features(
-            database,
-            tmp / "images",
-            camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=pycolmap.ImageReaderOptions(camera_model="SIMPLE_PINHOLE"),
-            device=pycolmap.Device.cpu,
-        )
-        pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
-        reconstructions = pycolmap.incremental_mapping(database, tmp / "images", tmp / "sparse")
-        best = max(reconstructions.values(), key=lambda r: r.num_reg_images()) if reconstructions else None
-        registered = 0 if best is None else int(best.num_reg_images())
-        if registered < SFM_MIN_VIEWS:
-            raise PolarInputError(model_dir, f"SfM registered {registered} of {len(pictures)} images; {advice}")
-        staging = tmp / "model"
-        staging.mkdir()
-        best.write_text(str(staging))
-        model_dir.parent.mkdir(parents=True, exist_ok=True)
-        if model_dir.exists():
-            raise PolarInputError(model_dir, "already exists; refusing to overwrite a COLMAP model")
-        shutil.move(str(staging), str(model_dir))  # a whole directory appears at once
-    return model_dir
 
 
 def _read_angle_image(path: Path, bit_depth: int | None) -> tuple[np.ndarray, np.dtype]:
@@ -425,6 +195,67 @@ def _camera_for(name: str, model: dict[str, ColmapCamera]) -> ColmapCamera | Non
     return by_stem.get(name)
 
 
+def _read_stokes(
+    folder: Path, pattern: str | None, bit_depth: int | None, check_pattern: bool, info: dict
+) -> dict[str, torch.Tensor]:
+    """{name: (3, C, H, W) Stokes} of every view in the folder's angle images or, without them,
+    its raw mosaics; the mosaic pattern used and the frames' colour evidence go into ``info``."""
+    angle_sets = _angle_sets(_image_root(folder))
+    raw_files = {} if angle_sets else _files_by_stem(folder / "raw", _RAW_SUFFIXES)
+    if not angle_sets and not raw_files:
+        raise PolarInputError(
+            folder, "no polarization images: expected <name>_0/45/90/135 files, 0/ 45/ 90/ 135/ folders, or raw/ mosaics"
+        )
+    if raw_files and pattern not in (*MOSAIC_PATTERNS, "auto"):
+        raise PolarInputError(
+            folder / "raw", f"unknown mosaic pattern {pattern!r}; pass pattern= one of {(*MOSAIC_PATTERNS, 'auto')} (polargs: --pattern)"
+        )
+    stokes = {name: _stokes_from_angles(paths, bit_depth) for name, paths in angle_sets.items()}
+    used_pattern, evidence = None, {}
+    if raw_files:
+        raws = {name: _read_raw(path) for name, path in raw_files.items()}
+        used_pattern, evidence = _resolve_pattern(raws, raw_files, pattern, bit_depth, check_pattern)
+        for name in list(raws):
+            stokes[name] = _stokes_from_raw(raws.pop(name), raw_files[name], used_pattern, bit_depth)
+    info.update(pattern=used_pattern, colour_evidence=evidence, sfm=False)
+    return stokes
+
+
+def _model_folder(folder: Path, stokes: dict[str, torch.Tensor], sfm: bool, info: dict) -> Path:
+    """The folder's COLMAP model; without one and with ``sfm``, built now by SfM on sRGB 8-bit
+    pictures of the views' s0 / 2. ``info`` records where it is and whether SfM built it."""
+    model_dir = find_colmap_model(folder)
+    if model_dir is None:
+        if not sfm:
+            raise PolarInputError(
+                folder, "no COLMAP model (sparse/0/cameras.txt|.bin, images.txt|.bin); pass sfm=True (polargs: --sfm) to run SfM"
+            )
+        pictures = {name: np.rint(linear_to_srgb(to_hwc(s[0] / 2)) * 255).astype(np.uint8) for name, s in stokes.items()}
+        model_dir = run_sfm(pictures, folder / "sparse" / "0")
+        info["sfm"] = True
+    info["model"] = str(model_dir)
+    return model_dir
+
+
+def _registered_views(folder: Path, stokes: dict[str, torch.Tensor], model_dir: Path) -> tuple[list[View], list[str]]:
+    """The views the COLMAP model in ``model_dir`` has cameras for (with their masks from
+    ``masks/``), and the names of those it has none for."""
+    model = read_colmap_model(model_dir)
+    mask_paths = _files_by_stem(folder / "masks", (".png", ".tif", ".tiff"))
+    collector, unregistered = ViewCollector(folder), []
+    for name, view_stokes in stokes.items():
+        camera = _camera_for(name, model)
+        if camera is None:
+            unregistered.append(name)
+            continue
+        height, width = view_stokes.shape[-2:]
+        if (camera.width, camera.height) != (width, height):
+            raise PolarInputError(model_dir, f"camera of {name} is {camera.width}x{camera.height}, images are {width}x{height}")
+        mask = read_mask(mask_paths[name], (height, width), matched="the images") if name in mask_paths else None
+        collector.add(name, camera.K.copy(), camera.world_to_camera.copy(), view_stokes, mask)
+    return collector.finish(), unregistered
+
+
 def read_polar_folder(
     folder: str | os.PathLike,
     pattern: str | None = None,
@@ -454,52 +285,10 @@ def read_polar_folder(
         not register are skipped with a warning. stokes (3, C, H, W), C = 1 or 3.
     """
     folder = Path(folder)
-    root = _image_root(folder)
-    angle_sets = _angle_sets(root)
-    raw_files = {} if angle_sets else _files_by_stem(folder / "raw", _RAW_SUFFIXES)
-    if not angle_sets and not raw_files:
-        raise PolarInputError(
-            folder, "no polarization images: expected <name>_0/45/90/135 files, 0/ 45/ 90/ 135/ folders, or raw/ mosaics"
-        )
-    if raw_files and pattern not in (*MOSAIC_PATTERNS, "auto"):
-        raise PolarInputError(
-            folder / "raw", f"unknown mosaic pattern {pattern!r}; pass pattern= one of {(*MOSAIC_PATTERNS, 'auto')} (polargs: --pattern)"
-        )
     info = {} if info is None else info
-    stokes = {name: _stokes_from_angles(paths, bit_depth) for name, paths in angle_sets.items()}
-    used_pattern, evidence = None, {}
-    if raw_files:
-        raws = {name: _read_raw(path) for name, path in raw_files.items()}
-        used_pattern, evidence = _resolve_pattern(raws, raw_files, pattern, bit_depth, check_pattern)
-        for name in list(raws):
-            stokes[name] = _stokes_from_raw(raws.pop(name), raw_files[name], used_pattern, bit_depth)
-    info.update(pattern=used_pattern, colour_evidence=evidence, sfm=False)
-
-    model_dir = find_colmap_model(folder)
-    if model_dir is None:
-        if not sfm:
-            raise PolarInputError(
-                folder, "no COLMAP model (sparse/0/cameras.txt|.bin, images.txt|.bin); pass sfm=True (polargs: --sfm) to run SfM"
-            )
-        pictures = {name: np.rint(linear_to_srgb(to_hwc(s[0] / 2)) * 255).astype(np.uint8) for name, s in stokes.items()}
-        model_dir = run_sfm(pictures, folder / "sparse" / "0")
-        info["sfm"] = True
-    info["model"] = str(model_dir)
-    model = read_colmap_model(model_dir)
-
-    mask_paths = _files_by_stem(folder / "masks", (".png", ".tif", ".tiff"))
-    collector, unregistered = ViewCollector(folder), []
-    for name, view_stokes in stokes.items():
-        camera = _camera_for(name, model)
-        if camera is None:
-            unregistered.append(name)
-            continue
-        height, width = view_stokes.shape[-2:]
-        if (camera.width, camera.height) != (width, height):
-            raise PolarInputError(model_dir, f"camera of {name} is {camera.width}x{camera.height}, images are {width}x{height}")
-        mask = read_mask(mask_paths[name], (height, width), matched="the images") if name in mask_paths else None
-        collector.add(name, camera.K.copy(), camera.world_to_camera.copy(), view_stokes, mask)
-    views = collector.finish()
+    stokes = _read_stokes(folder, pattern, bit_depth, check_pattern, info)
+    model_dir = _model_folder(folder, stokes, sfm, info)
+    views, unregistered = _registered_views(folder, stokes, model_dir)
     if unregistered:
         warnings.warn(f"{folder}: {len(unregistered)} views have no camera in {model_dir}: {unregistered[:10]}", stacklevel=2)
     if not views:
