@@ -11,6 +11,7 @@ import polargs_plugin.reflective_window
 import polargs_plugin.optics.azimuth
 import polargs_plugin.optics.fresnel
 import polargs_plugin.optics.mosaic
+import polargs_plugin.optics.pattern
 import polargs_plugin.optics.stokes
 import polargs_plugin.viz
 
@@ -18,6 +19,7 @@ MODULES = [
     polargs_plugin.optics.azimuth,
     polargs_plugin.optics.fresnel,
     polargs_plugin.optics.mosaic,
+    polargs_plugin.optics.pattern,
     polargs_plugin.optics.stokes,
     polargs_plugin.viz,
 ]

@@ -189,7 +189,7 @@ def _real_crops():
 
 
 def test_real_mono_frames_show_no_bayer_colour_structure():
-    from polargs_plugin.optics.mosaic import check_mosaic_pattern, classify_mosaic, mosaic_colour_evidence
+    from polargs_plugin.optics.pattern import check_mosaic_pattern, classify_mosaic, mosaic_colour_evidence
 
     crops = _real_crops()
     assert len(crops) == 5
@@ -207,7 +207,7 @@ def test_real_mono_frames_show_no_bayer_colour_structure():
 @pytest.mark.parametrize("name", ["glossy_plane_sphere", "shiny_torus", "bumpy_mixed", "torus_knot"])
 def test_synthetic_mosaics_from_the_writer_are_told_apart(name):
     from polargs_plugin.data.synthetic import generate_scene
-    from polargs_plugin.optics.mosaic import check_mosaic_pattern, classify_mosaic, mosaic_colour_evidence
+    from polargs_plugin.optics.pattern import check_mosaic_pattern, classify_mosaic, mosaic_colour_evidence
 
     scene = generate_scene(name, num_views=4, width=128, height=128)
     quantise = lambda x: np.rint(np.clip(x.numpy(), 0, 1) * 255).astype(np.uint8)  # noqa: E731
@@ -226,7 +226,7 @@ def test_synthetic_mosaics_from_the_writer_are_told_apart(name):
 
 
 def test_pattern_check_cannot_tell_flat_or_tiny_frames():
-    from polargs_plugin.optics.mosaic import check_mosaic_pattern, mosaic_colour_evidence
+    from polargs_plugin.optics.pattern import check_mosaic_pattern, mosaic_colour_evidence
 
     flat = np.full((64, 64), 100, np.uint8)
     assert mosaic_colour_evidence(np.zeros((8, 8), np.uint8)) is None

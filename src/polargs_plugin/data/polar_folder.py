@@ -12,7 +12,7 @@ Angle images may be 8/16-bit PNG/TIFF (grey or RGB; an alpha channel is dropped)
 Raw mosaics are 2-D 8/16-bit images or ``.npy`` arrays, demosaiced by
 :func:`polargs_plugin.optics.mosaic.demosaic_polar` (``pattern`` "mono" or "rgb", or "auto": told
 from the frames). The pattern is checked against every frame
-(:func:`polargs_plugin.optics.mosaic.check_mosaic_pattern`: inside the polarizer super-pixels a
+(:func:`polargs_plugin.optics.pattern.check_mosaic_pattern`: inside the polarizer super-pixels a
 colour IMX250MYR frame has the 2x2 Bayer colour structure, a mono IMX250MZR frame has none), so a
 mono frame read as colour, or the reverse, is an error naming the frame.
 
@@ -56,14 +56,12 @@ from polargs_plugin.data.imageio_utils import (
 from polargs_plugin.data.sfm import run_sfm
 from polargs_plugin.data.views import ViewCollector, read_mask
 from polargs_plugin.io import PolarInputError
-from polargs_plugin.optics.mosaic import (
-    MOSAIC_PATTERNS,
+from polargs_plugin.optics.mosaic import MOSAIC_PATTERNS, demosaic_polar, mosaic_from_intensities
+from polargs_plugin.optics.pattern import (
     MONO_BELOW,
     RGB_ABOVE,
     classify_mosaic,
-    demosaic_polar,
     mosaic_colour_evidence,
-    mosaic_from_intensities,
     pattern_mismatch,
 )
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, intensities_from_stokes, stokes_from_intensities

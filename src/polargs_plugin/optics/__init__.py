@@ -1,6 +1,7 @@
 """Stateless polarization maths on torch tensors (CPU and CUDA): Stokes, AoLP/DoLP, sensor
-mosaics, Fresnel DoLP and the normal <-> azimuth conventions. Imports nothing else of the
-package except ``io.PolarInputError``."""
+mosaics (and telling mono from colour ones, ``optics.pattern``), Fresnel DoLP and the normal <->
+azimuth conventions. Imports nothing else of the package except ``io.PolarInputError`` and
+``threads.numba_scheduling``."""
 
 from polargs_plugin.optics.azimuth import (
     AZIMUTH_MODELS,
