@@ -66,6 +66,64 @@ def sensor_dolp(angles: Tensor, white_level: float) -> Tensor:
     return dolp_from_stokes(stokes_from_intensities(clipped))
 
 
+def _reflective_regions(
+    angles: Tensor, dolp: Tensor, peak: Tensor, inside: Tensor, config: CorrectionConfig
+) -> tuple[Tensor, Tensor, Tensor]:
+    """(specular, overexposed, saturated) :math:`(1, H, W)` bool masks of one view.
+
+    Where some angle image of some channel exceeds the white level (HDR), the masks use the DoLP
+    a sensor clipping there would record. A pixel with some channel of some angle at the clipping
+    level (pri_saturation * white) holds clipped colour: saturated, never a donor. Specular and
+    overexposed pixels are restricted to ``inside``.
+    """
+    white = float(config.white_level)
+    brightest = angles.flatten(0, 1).amax(dim=0, keepdim=True)  # (1, H, W)
+    above_white = brightest > white * (1 + _WHITE_TOL)
+    saturated = brightest >= config.pri_saturation * white
+    mask_dolp = dolp
+    if bool(above_white.any()):
+        mask_dolp = torch.where(above_white, sensor_dolp(angles, white), dolp)
+    specular, overexposed = reflective_masks(
+        mask_dolp, peak, config.specular_dolp, config.overexposed_dolp, config.intensity_range,
+        white_level=white, intermediate=config.intermediate_dolp, saturated=saturated,
+    )
+    specular &= inside
+    overexposed &= inside
+    return specular, overexposed, saturated
+
+
+def _chromaticity_targets(
+    i_diff: Tensor,
+    dolp: Tensor,
+    pri: Tensor,
+    all_clipped: Tensor,
+    overexposed: Tensor,
+    donors: Tensor,
+    config: CorrectionConfig,
+) -> tuple[Tensor, Tensor]:
+    """(I_chro :math:`(C, H, W)`, valid :math:`(1, H, W)` bool) of the overexposed pixels: I_diff
+    propagated from donors of similar whitened (DoLP, PRI), a pixel whose four angles all clip
+    comparing on DoLP only; I_chro is 0 where no donor was found."""
+    features = whiten_features(torch.cat([dolp, pri]), donors)
+    components = torch.cat([torch.ones_like(all_clipped), ~all_clipped])
+    i_prop, chro_valid = propagate(
+        i_diff,
+        features,
+        overexposed,
+        donors,
+        config.propagation_radius,
+        config.mahalanobis_threshold,
+        components,
+        config.propagation_step,
+    )
+    # I_chro only where propagation succeeded (a small fraction of the image).
+    i_chro = torch.zeros_like(i_diff)
+    where = chro_valid.reshape(-1).nonzero().squeeze(1)
+    columns = (m.reshape(m.shape[0], -1)[:, where, None] for m in (i_prop, i_diff))  # (C, T, 1)
+    i_chro.reshape(i_chro.shape[0], -1)[:, where] = chromaticity_map(*columns, config.rho_d)[..., 0]
+    return i_chro, chro_valid
+
+
 def compute_polar_maps(
     stokes: Tensor,
     mask: Tensor | None = None,
@@ -116,43 +174,11 @@ def compute_polar_maps(
     inside = torch.ones_like(dolp, dtype=torch.bool) if mask is None else mask.to(torch.bool)
     peak = peak_intensity(mean_stokes)
     angles = intensities_from_stokes(stokes) if intensities is None else intensities  # (4, C, H, W)
-    # Where some angle image of some channel exceeds the white level (HDR), the masks use the
-    # DoLP a sensor clipping there would record. A pixel with some channel of some angle at the
-    # clipping level (pri_saturation * white) holds clipped colour: saturated, never a donor.
-    brightest = angles.flatten(0, 1).amax(dim=0, keepdim=True)  # (1, H, W)
-    above_white = brightest > white * (1 + _WHITE_TOL)
-    saturated = brightest >= config.pri_saturation * white
-    mask_dolp = dolp
-    if bool(above_white.any()):
-        mask_dolp = torch.where(above_white, sensor_dolp(angles, white), dolp)
-    specular, overexposed = reflective_masks(
-        mask_dolp, peak, config.specular_dolp, config.overexposed_dolp, config.intensity_range,
-        white_level=white, intermediate=config.intermediate_dolp, saturated=saturated,
-    )
-    specular &= inside
-    overexposed &= inside
-
+    specular, overexposed, saturated = _reflective_regions(angles, dolp, peak, inside, config)
     pri, all_clipped = pri_with_clipping(angles, config.pri_saturation * white)
     i_diff = diffuse_map(stokes).clamp_(max=white)
-
     donors = inside & ~specular & ~overexposed & ~saturated
-    features = whiten_features(torch.cat([dolp, pri]), donors)
-    components = torch.cat([torch.ones_like(all_clipped), ~all_clipped])
-    i_prop, chro_valid = propagate(
-        i_diff,
-        features,
-        overexposed,
-        donors,
-        config.propagation_radius,
-        config.mahalanobis_threshold,
-        components,
-        config.propagation_step,
-    )
-    # I_chro only where propagation succeeded (a small fraction of the image).
-    i_chro = torch.zeros_like(i_diff)
-    where = chro_valid.reshape(-1).nonzero().squeeze(1)
-    columns = (m.reshape(m.shape[0], -1)[:, where, None] for m in (i_prop, i_diff))  # (C, T, 1)
-    i_chro.reshape(i_chro.shape[0], -1)[:, where] = chromaticity_map(*columns, config.rho_d)[..., 0]
+    i_chro, chro_valid = _chromaticity_targets(i_diff, dolp, pri, all_clipped, overexposed, donors, config)
     return PolarMaps(
         aolp=aolp,
         dolp=dolp,

@@ -116,35 +116,68 @@ def propagate(
     """
     if radius < 0 or step < 1:
         raise ValueError(f"need radius >= 0 and step >= 1, got radius {radius}, step {step}")
+    box = _target_box(target_mask, radius)
+    if box is None:
+        return torch.zeros_like(values), torch.zeros_like(target_mask)
+    height, width = values.shape[-2:]
+    top, bottom, left, right = box
+    if (bottom - top, right - left) == (height, width):
+        return _fill_targets(values, features, target_mask, donor_mask, radius, threshold, components, step)
+    # Only the targets' bounding box grown by the radius can matter: work on that crop.
+    filled = torch.zeros_like(values)
+    valid = torch.zeros_like(target_mask)
+    crop = (slice(None), slice(top, bottom), slice(left, right))
+    parts = propagate(
+        values[crop], features[crop], target_mask[crop], donor_mask[crop], radius, threshold,
+        None if components is None else components[crop], step,
+    )
+    filled[crop], valid[crop] = parts
+    return filled, valid
+
+
+def _target_box(target_mask: Tensor, radius: int) -> tuple[int, int, int, int] | None:
+    """(top, bottom, left, right), end exclusive, of the target pixels' bounding box grown by
+    ``radius`` and clipped to the image; None when there is no target."""
+    height, width = target_mask.shape[-2:]
+    rows = target_mask[0].any(dim=1).nonzero()
+    if rows.numel() == 0:
+        return None
+    cols = target_mask[0].any(dim=0).nonzero()
+    top, bottom = max(int(rows[0]) - radius, 0), min(int(rows[-1]) + radius + 1, height)
+    left, right = max(int(cols[0]) - radius, 0), min(int(cols[-1]) + radius + 1, width)
+    return top, bottom, left, right
+
+
+def _padded_table(values: Tensor, features: Tensor, donor_mask: Tensor, radius: int) -> Tensor:
+    """One pixel-major table (Hp * Wp, F + C + 1) of features, values and donor flag, padded by
+    ``radius`` (padding = not a donor): a window is then a fixed set of flat offsets, and one row
+    gather fetches features, values and donor flag together."""
+    height, width = values.shape[-2:]
+    planes = [*features, *values, donor_mask[0]]
+    table = values.new_zeros(height + 2 * radius, width + 2 * radius, len(planes))
+    for index, plane in enumerate(planes):
+        table[radius : radius + height, radius : radius + width, index] = plane
+    return table.reshape(-1, len(planes))
+
+
+def _fill_targets(
+    values: Tensor,
+    features: Tensor,
+    target_mask: Tensor,
+    donor_mask: Tensor,
+    radius: int,
+    threshold: float,
+    components: Tensor | None,
+    step: int,
+) -> tuple[Tensor, Tensor]:
+    """:func:`propagate` on the whole image, chunk by chunk of target pixels."""
     channels, height, width = values.shape
     num_features = features.shape[0]
     filled = torch.zeros_like(values)
     valid = torch.zeros_like(target_mask)
-    rows = target_mask[0].any(dim=1).nonzero()
-    if rows.numel() == 0:
-        return filled, valid
-    # Only the targets' bounding box grown by the radius can matter: work on that crop.
-    cols = target_mask[0].any(dim=0).nonzero()
-    top, bottom = max(int(rows[0]) - radius, 0), min(int(rows[-1]) + radius + 1, height)
-    left, right = max(int(cols[0]) - radius, 0), min(int(cols[-1]) + radius + 1, width)
-    if (bottom - top, right - left) != (height, width):
-        crop = (slice(None), slice(top, bottom), slice(left, right))
-        parts = propagate(
-            values[crop], features[crop], target_mask[crop], donor_mask[crop], radius, threshold,
-            None if components is None else components[crop], step,
-        )
-        filled[crop], valid[crop] = parts
-        return filled, valid
     targets = target_mask.reshape(-1).nonzero().squeeze(1)
-
-    # One pixel-major table padded by `radius` (padding = not a donor): a window is then a fixed
-    # set of flat offsets, and one row gather fetches features, values and donor flag together.
-    planes = [*features, *values, donor_mask[0]]
+    table = _padded_table(values, features, donor_mask, radius)
     padded_width = width + 2 * radius
-    table = values.new_zeros(height + 2 * radius, padded_width, len(planes))
-    for index, plane in enumerate(planes):
-        table[radius : radius + height, radius : radius + width, index] = plane
-    table = table.reshape(-1, len(planes))  # (Hp * Wp, F + C + 1)
     half = radius // step * step
     steps = torch.arange(-half, half + 1, step, device=values.device)
     offsets = (steps[:, None] * padded_width + steps[None, :]).reshape(-1)  # (K,)

@@ -448,7 +448,19 @@ def generate_scene(
     K = intrinsics(width, height, spec.fov_deg)
     cameras = orbit_cameras(num_views, spec.target, spec.camera_distance, spec.elevations_deg)
     streams = np.random.SeedSequence(seed).spawn(num_views)
-    out = SyntheticScene(
+    out = _empty_scene(spec)
+    for index in tqdm(range(num_views), desc=f"rendering {spec.name}", unit="view", disable=not progress):
+        clean = renderer.render(K, cameras[index], width, height)
+        sensed = apply_sensor(clean.stokes, np.random.default_rng(streams[index]), noise_std, quantize_bits)
+        _append_view(out, index, K, cameras[index], clean, sensed, mask, highlight_threshold)
+    out.meta = _meta(spec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
+                     highlight_threshold, mask)
+    return out
+
+
+def _empty_scene(spec: SceneSpec) -> SyntheticScene:
+    """The scene of ``spec`` with its mesh and no views yet."""
+    return SyntheticScene(
         name=spec.name,
         views=[],
         angle_images=[],
@@ -460,30 +472,39 @@ def generate_scene(
         mesh_triangles=spec.triangles.copy(),
         object_triangles=None if spec.object_triangles is None else spec.object_mask().copy(),
     )
-    for index in tqdm(range(num_views), desc=f"rendering {spec.name}", unit="view", disable=not progress):
-        clean = renderer.render(K, cameras[index], width, height)
-        angles, stokes, overexposed = apply_sensor(clean.stokes, np.random.default_rng(streams[index]), noise_std, quantize_bits)
-        view_mask = clean.object_mask if mask == "object" else clean.mask
-        out.views.append(
-            View(
-                name=f"view_{index:03d}",
-                K=torch.from_numpy(K.copy()),
-                world_to_camera=torch.from_numpy(cameras[index].copy()),
-                stokes=stokes,
-                mask=view_mask,
-                normal_gt=torch.where(view_mask, clean.normal, 0.0).to(torch.float32),
-                depth_gt=torch.where(view_mask, clean.depth, 0.0).to(torch.float32),
-                source=f"synthetic:{spec.name}",
-            )
+
+
+def _append_view(
+    scene: SyntheticScene,
+    index: int,
+    K: np.ndarray,
+    world_to_camera: np.ndarray,
+    clean: RenderedView,
+    sensed: tuple[Tensor, Tensor, Tensor],
+    mask: str,
+    highlight_threshold: float,
+) -> None:
+    """Add view ``index`` to ``scene``: its rendering ``clean`` and what the sensor made of it,
+    ``sensed`` = (angle images, Stokes, overexposed) of :func:`apply_sensor`."""
+    angles, stokes, overexposed = sensed
+    view_mask = clean.object_mask if mask == "object" else clean.mask
+    scene.views.append(
+        View(
+            name=f"view_{index:03d}",
+            K=torch.from_numpy(K.copy()),
+            world_to_camera=torch.from_numpy(world_to_camera.copy()),
+            stokes=stokes,
+            mask=view_mask,
+            normal_gt=torch.where(view_mask, clean.normal, 0.0).to(torch.float32),
+            depth_gt=torch.where(view_mask, clean.depth, 0.0).to(torch.float32),
+            source=f"synthetic:{scene.name}",
         )
-        out.angle_images.append(angles)
-        out.diffuse_gt.append(clean.diffuse.to(torch.float32))
-        out.specular_gt.append(clean.specular.to(torch.float32))
-        out.highlight_masks.append(view_mask & (clean.specular.mean(dim=0, keepdim=True) >= highlight_threshold))
-        out.overexposed_masks.append(overexposed)
-    out.meta = _meta(spec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
-                     highlight_threshold, mask)
-    return out
+    )
+    scene.angle_images.append(angles)
+    scene.diffuse_gt.append(clean.diffuse.to(torch.float32))
+    scene.specular_gt.append(clean.specular.to(torch.float32))
+    scene.highlight_masks.append(view_mask & (clean.specular.mean(dim=0, keepdim=True) >= highlight_threshold))
+    scene.overexposed_masks.append(overexposed)
 
 
 def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
