@@ -116,22 +116,34 @@ def propagate(
     """
     if radius < 0 or step < 1:
         raise ValueError(f"need radius >= 0 and step >= 1, got radius {radius}, step {step}")
-    box = _target_box(target_mask, radius)
-    if box is None:
-        return torch.zeros_like(values), torch.zeros_like(target_mask)
-    height, width = values.shape[-2:]
-    top, bottom, left, right = box
-    if (bottom - top, right - left) == (height, width):
-        return _fill_targets(values, features, target_mask, donor_mask, radius, threshold, components, step)
-    # Only the targets' bounding box grown by the radius can matter: work on that crop.
     filled = torch.zeros_like(values)
     valid = torch.zeros_like(target_mask)
-    crop = (slice(None), slice(top, bottom), slice(left, right))
-    parts = propagate(
-        values[crop], features[crop], target_mask[crop], donor_mask[crop], radius, threshold,
-        None if components is None else components[crop], step,
-    )
-    filled[crop], valid[crop] = parts
+    box = _target_box(target_mask, radius)
+    if box is None:
+        return filled, valid
+    height, width = values.shape[-2:]
+    top, bottom, left, right = box
+    if (bottom - top, right - left) != (height, width):
+        # Only the targets' bounding box grown by the radius can matter: work on that crop.
+        crop = (slice(None), slice(top, bottom), slice(left, right))
+        parts = propagate(
+            values[crop], features[crop], target_mask[crop], donor_mask[crop], radius, threshold,
+            None if components is None else components[crop], step,
+        )
+        filled[crop], valid[crop] = parts
+        return filled, valid
+    targets = target_mask.reshape(-1).nonzero().squeeze(1)
+    table = _padded_table(values, features, donor_mask, radius)
+    padded_width = width + 2 * radius
+    half = radius // step * step
+    steps = torch.arange(-half, half + 1, step, device=values.device)
+    offsets = (steps[:, None] * padded_width + steps[None, :]).reshape(-1)  # (K,)
+    centres = (targets // width + radius) * padded_width + targets % width + radius
+    num_features = features.shape[0]
+    target_components = None
+    if components is not None:
+        target_components = components.reshape(num_features, -1)[:, targets].T.to(values.dtype)  # (T, F)
+    _gather_donors(table, offsets, centres, targets, target_components, threshold, filled, valid)
     return filled, valid
 
 
@@ -160,33 +172,26 @@ def _padded_table(values: Tensor, features: Tensor, donor_mask: Tensor, radius: 
     return table.reshape(-1, len(planes))
 
 
-def _fill_targets(
-    values: Tensor,
-    features: Tensor,
-    target_mask: Tensor,
-    donor_mask: Tensor,
-    radius: int,
+def _gather_donors(
+    table: Tensor,
+    offsets: Tensor,
+    centres: Tensor,
+    targets: Tensor,
+    target_components: Tensor | None,
     threshold: float,
-    components: Tensor | None,
-    step: int,
-) -> tuple[Tensor, Tensor]:
-    """:func:`propagate` on the whole image, chunk by chunk of target pixels."""
-    channels, height, width = values.shape
-    num_features = features.shape[0]
-    filled = torch.zeros_like(values)
-    valid = torch.zeros_like(target_mask)
-    targets = target_mask.reshape(-1).nonzero().squeeze(1)
-    table = _padded_table(values, features, donor_mask, radius)
-    padded_width = width + 2 * radius
-    half = radius // step * step
-    steps = torch.arange(-half, half + 1, step, device=values.device)
-    offsets = (steps[:, None] * padded_width + steps[None, :]).reshape(-1)  # (K,)
-    centres = (targets // width + radius) * padded_width + targets % width + radius
-    target_components = None
-    if components is not None:
-        target_components = components.reshape(num_features, -1)[:, targets].T.to(values.dtype)  # (T, F)
-    threshold_sq = threshold * threshold
+    filled: Tensor,
+    valid: Tensor,
+) -> None:
+    """Fill ``filled`` (C, H, W) and ``valid`` (1, H, W) at the flat pixels ``targets`` from
+    their windows, chunk by chunk of targets (memory bounded by :data:`_CHUNK_ELEMENTS`).
 
+    ``table`` is :func:`_padded_table`'s, ``offsets`` (K,) the window's flat offsets in it,
+    ``centres`` (T,) the targets' rows in it, ``target_components`` (T, F) or None the components
+    each target compares on.
+    """
+    channels = filled.shape[0]
+    num_features = table.shape[1] - channels - 1
+    threshold_sq = threshold * threshold
     window = offsets.numel()
     chunk = max(1, _CHUNK_ELEMENTS // (window * table.shape[1]))
     out_flat = filled.reshape(channels, -1)
@@ -205,7 +210,6 @@ def _fill_targets(
         weighted = torch.einsum("mk,mkc->cm", weight, rows[..., num_features:-1])
         out_flat[:, pixels] = weighted / total.clamp_min(torch.finfo(total.dtype).tiny)
         valid_flat[pixels] = total > 0
-    return filled, valid
 
 
 def chromaticity_map(i_prop: Tensor, i_diff: Tensor, rho_d: float | None = None) -> Tensor:
