@@ -339,7 +339,7 @@ def test_every_field_is_documented_in_its_class_docstring():
 # `polargs train` reports the range of a `--config` value once the command passes where="polar" /
 # "train" to the configs' from_dict and prints their ValueError after the file's name; until then
 # these cases are expected to fail (the mode cases pass already).
-_CLI_WIRING = pytest.mark.xfail(strict=True, reason="polargs train does not yet report config range errors as FILE: polar.FIELD")
+_CLI_WIRING = pytest.mark.xfail(strict=True, reason="polargs train does not yet report config range errors as FILE: SECTION.FIELD")
 
 CLI_CASES = [
     pytest.param("polar", "densify.interval", 0, "must be a positive integer, got 0", marks=_CLI_WIRING),
