@@ -75,7 +75,7 @@ def test_pc_replaces_plain_colour_loss_on_reflective_pixels():
     hooks = PolarHooks(cfg)
     (maps,) = hooks.preprocess([view])
     render = _render()
-    extra, _ = hooks.loss(0, view, render, _gaussians())
+    extra, _ = hooks.loss(1, view, render, _gaussians())
     trainer = photometric_loss(render.color, view.image)  # the trainer's own colour loss
     over = maps.overexposed_mask & maps.extras["i_chro_valid"]
     reflective = maps.specular_mask | over
@@ -87,7 +87,7 @@ def test_pc_replaces_plain_colour_loss_on_reflective_pixels():
     # to I_diff (weighted by lambda_ref) on specular pixels and left alone elsewhere.
     cfg.losses.ssim_weight = 0.0
     render = _render()
-    extra, _ = hooks.loss(0, view, render, _gaussians())
+    extra, _ = hooks.loss(1, view, render, _gaussians())
     (photometric_loss(render.color, view.image, ssim_weight=0.0) + extra).backward()
     grad = render.color.grad * (3 * H * W)
     spec = maps.specular_mask.expand(3, H, W)
@@ -103,7 +103,7 @@ def test_ablation_switches_and_schedule():
     hooks = PolarHooks(cfg)
     (maps,) = hooks.preprocess([view])
     assert maps.specular_mask is None
-    _, logs = hooks.loss(0, view, _render(), _gaussians())
+    _, logs = hooks.loss(1, view, _render(), _gaussians())
     assert set(logs) == {"l_scale"}  # no PC; L_dn waits for its iteration; no PatchMatch normal
     _, logs = hooks.loss(cfg.losses.depth_normal_from_iter, view, _render(), _gaussians())
     assert "l_dn" in logs
@@ -114,7 +114,23 @@ def test_ablation_switches_and_schedule():
     assert hooks.densify(1000, view, lambda v: _render(), _gaussians()) is None
     assert hooks.normal_target(view.name) is None
     with pytest.raises(KeyError, match="preprocess"):
-        PolarHooks(_config()).loss(0, view, _render(), _gaussians())
+        PolarHooks(_config()).loss(1, view, _render(), _gaussians())
+
+
+@pytest.mark.parametrize("iteration", [0, -3, 1.0, True])
+def test_loss_and_densify_refuse_iterations_that_are_not_1_based_integers(iteration):
+    """Iterations count from 1 (the first optimisation step); a 0-based or fractional count is a
+    trainer-side mistake that would shift every schedule by one, so it is refused in one line."""
+    view = _view()
+    hooks = PolarHooks(_config())
+    hooks.preprocess([view])
+    for call, where in ((lambda: hooks.loss(iteration, view, _render(), _gaussians()), "hooks.loss"),
+                        (lambda: hooks.densify(iteration, view, lambda v: _render(), _gaussians()), "hooks.densify")):
+        with pytest.raises(ValueError) as err:
+            call()
+        assert str(err.value) == f"{where}: iteration must be an integer >= 1 (iterations are 1-based), got {iteration!r}"
+    hooks.loss(1, view, _render(), _gaussians())  # the first iteration is fine
+    assert hooks.densify(1, view, lambda v: _render(), _gaussians()) is None  # Dense off in _config
 
 
 def test_depth_normal_term_takes_the_plane_depth_when_the_render_has_one():
@@ -215,7 +231,7 @@ def test_densify_delegation_normal_loss_and_state(monkeypatch):
     view = _view()
     hooks = PolarHooks(cfg)
     hooks.preprocess([view])
-    _, logs = hooks.loss(0, view, _render(), _gaussians())
+    _, logs = hooks.loss(1, view, _render(), _gaussians())
     assert "l_n" not in logs  # no PatchMatch normal yet
     hooks.densify(1000, view, lambda v: _render(), _gaussians())
     render = _render()
@@ -244,7 +260,8 @@ def test_densify_delegation_normal_loss_and_state(monkeypatch):
     assert "l_n" not in hooks.loss(last + 1, view, tilted, _gaussians())[1]
     for bad in (0.0, -5.0, 200.0):
         cfg.losses.normal_hold_deg = bad
-        with pytest.raises(ValueError, match=r"normal_hold_deg must be in \(0, 180\]"):
+        with pytest.raises(ValueError, match=re.escape(
+                f"config.losses.normal_hold_deg: must be in (0, 180] degrees or null, got {bad}")):
             PolarHooks(cfg)
     cfg.losses.normal_hold_deg = None
     cfg.losses.normal_until_after_dense = None
@@ -319,11 +336,11 @@ def test_polar_config_from_dict_checks_each_value_against_its_field():
     assert config.losses.alpha_normal == 1.0 and isinstance(config.losses.alpha_normal, float)
     assert config.correction.specular_dolp == (0.2, 0.9) and config.densify.seed_max_plane_deviation is None
     for path, value, message in (
-        ("losses.alpha_normal", "0.1", "config.losses.alpha_normal: expected a number, got '0.1'"),
-        ("losses.alpha_normal", float("nan"), "config.losses.alpha_normal: expected a number"),
-        ("densify.enabled", 1, "config.densify.enabled: expected true or false, got 1"),
+        ("losses.alpha_normal", "0.1", "losses.alpha_normal: expected a number, got '0.1'"),
+        ("losses.alpha_normal", float("nan"), "losses.alpha_normal: expected a number"),
+        ("densify.enabled", 1, "densify.enabled: expected true or false, got 1"),
         ("densify.patchmatch.propagation_distances", [1, 2.5],
-         "config.densify.patchmatch.propagation_distances: expected a list of integers"),
+         "densify.patchmatch.propagation_distances: expected a list of integers"),
     ):
         bad = PolarConfig.synthetic().to_dict()
         *sections, key = path.split(".")
@@ -333,5 +350,5 @@ def test_polar_config_from_dict_checks_each_value_against_its_field():
         node[key] = value
         with pytest.raises(ValueError, match=re.escape(message)):
             PolarConfig.from_dict(bad)
-    with pytest.raises(ValueError, match="config.losses: expected a dict"):
+    with pytest.raises(ValueError, match="^losses: expected a dict"):
         PolarConfig.synthetic().update({"losses": 0.5})

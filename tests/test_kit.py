@@ -4,6 +4,7 @@ projection written out from its FoV matrices, Adam state after appends, raw <-> 
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -301,6 +302,10 @@ def test_config_from_env_gates_native_terms_before_the_json_file(tmp_path) -> No
     assert cfg.losses.use_scale and not cfg.losses.use_depth_normal and cfg.losses.alpha_normal == 0.3
     path.write_text('{"losses": {"alpha_nromal": 0.3}}')
     with pytest.raises(ValueError, match="polar.json: cannot use as POLARGS_CONFIG .*unknown setting 'alpha_nromal'"):
+        config_from_env({"POLARGS_CONFIG": str(path)})
+    path.write_text('{"densify": {"interval": 0}}')
+    with pytest.raises(ValueError, match=re.escape("polar.json: cannot use as POLARGS_CONFIG (ValueError: densify.interval: "
+                                                   "must be a positive integer, got 0)")):
         config_from_env({"POLARGS_CONFIG": str(path)})
     with pytest.raises(ValueError, match="POLARGS_PRESET='paper': unknown preset"):
         config_from_env({"POLARGS_PRESET": "paper"})

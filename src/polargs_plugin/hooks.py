@@ -21,7 +21,9 @@ What is given to the hooks is checked at the door (docs/choices.md "Checks at th
 physically impossible Stokes per view (refusing a view above
 ``correction.max_impossible_fraction``) and warns once per view whose s0 / 2 leaves [0, 1];
 ``loss`` and ``densify`` check the shapes of the render they read (cheap; no per-step scan of
-the render's values), with messages that name the argument, the expected and the actual shape.
+the render's values), with messages that name the argument, the expected and the actual shape,
+and refuse an iteration below 1. The config itself is checked when the hooks are built
+(``PolarConfig.validate``: a value out of its field's range is refused, named ``config.<field>``).
 A cache entry whose values are not finite or whose shapes do not fit the view is recomputed.
 """
 
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import numbers
 import pickle
 import re
 import warnings
@@ -118,6 +121,12 @@ def _check_shape(where: str, argument: str, tensor: Any, expected: tuple[int, ..
                          f"like view '{view.name}'")
 
 
+def _check_iteration(where: str, iteration: Any) -> None:
+    """Raise ValueError unless ``iteration`` is an integer >= 1 (the first step is iteration 1)."""
+    if isinstance(iteration, bool) or not isinstance(iteration, numbers.Integral) or iteration < 1:
+        raise ValueError(f"{where}: iteration must be an integer >= 1 (iterations are 1-based), got {iteration!r}")
+
+
 def _check_render(where: str, render: RenderOut, view: View, argument: str = "render",
                   fields: Sequence[str] = ("depth", "normal", "alpha")) -> None:
     height, width = view.height, view.width
@@ -136,15 +145,17 @@ class PolarHooks:
             :func:`maps_cache_key`.
 
     Iterations are 1-based (the first optimisation step is iteration 1), as everywhere in
-    :class:`polargs_plugin.types.TrainingHooks`.
+    :class:`polargs_plugin.types.TrainingHooks`; :meth:`loss` and :meth:`densify` refuse 0 and
+    negative ones.
+
+    Raises:
+        ValueError: a field of ``config`` out of its range (one line naming it, e.g.
+            ``config.densify.interval: must be a positive integer, got 0``).
     """
 
     def __init__(self, config: PolarConfig | None = None) -> None:
         self.config = config if config is not None else PolarConfig.synthetic()
-        hold = self.config.losses.normal_hold_deg
-        if hold is not None and not 0 < hold <= 180:
-            # Outside (0, 180] L_n would silently hold nothing (or everything) after the window.
-            raise ValueError(f"config.losses.normal_hold_deg must be in (0, 180] degrees or None, got {hold}")
+        self.config.validate("config")  # attributes may have been reassigned since it was built
         self.maps: dict[str, PolarMaps] = {}
         self._densifier: Any = None
         self._pending_state: dict[str, Any] | None = None
@@ -299,6 +310,7 @@ class PolarHooks:
             tensors (each active term, unweighted; ``float()`` them only when logging).
         """
         cfg = self.config.losses
+        _check_iteration("hooks.loss", iteration)
         self._check_loss_inputs(iteration, view, render, gaussians)
         color = render.color
         terms: list[Tensor] = []
@@ -396,9 +408,10 @@ class PolarHooks:
         Returns:
             Gaussians to append, or ``None`` (off schedule, Dense disabled, nothing survived).
         """
+        where = "hooks.densify"
+        _check_iteration(where, iteration)
         if self._densifier is None:
             return None
-        where = "hooks.densify"
         self._check_view_known(where, view)
         if render is not None:
             _check_render(where, render, view)

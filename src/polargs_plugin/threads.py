@@ -34,16 +34,20 @@ import contextlib
 import os
 import sys
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
-from typing import Any, MutableMapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, MutableMapping
+
+from polargs_plugin.config import CheckedConfig, at_least
 
 __all__ = [
-    "ThreadPolicy", "AppliedPolicy", "available_cores", "numba_threads", "numba_scheduling", "current_policy",
+    "ThreadPolicy", "AppliedPolicy", "NumbaLayer", "WaitPolicy", "available_cores", "numba_threads", "numba_scheduling", "current_policy",
     "numba_path",
 ]
 
-_LAYERS = ("workqueue", "omp", "tbb", "default")
-_WAIT_POLICIES = ("passive", "active")
+#: numba's threading layers (:attr:`ThreadPolicy.numba_layer`).
+NumbaLayer = Literal["workqueue", "omp", "tbb", "default"]
+#: OpenMP's wait policies (:attr:`ThreadPolicy.wait_policy`).
+WaitPolicy = Literal["passive", "active"]
 
 _applied: "AppliedPolicy | None" = None
 
@@ -57,13 +61,14 @@ def available_cores() -> int:
 
 
 @dataclass
-class ThreadPolicy:
+class ThreadPolicy(CheckedConfig):
     """How many threads torch and numba use, numba's threading layer, OpenMP's wait policy.
 
     Attributes:
-        threads: threads for torch's intra-op pool and for numba's kernels. ``None``: the cores
-            available to the process (:func:`available_cores`), capped by torch's current count
-            (which ``OMP_NUM_THREADS`` or an earlier ``torch.set_num_threads`` lowered).
+        threads: threads for torch's intra-op pool and for numba's kernels; >= 1. ``None``
+            (default): the cores available to the process (:func:`available_cores`), capped by
+            torch's current count (which ``OMP_NUM_THREADS`` or an earlier
+            ``torch.set_num_threads`` lowered).
         numba_layer: numba's threading layer: ``"workqueue"`` (default; workers never spin),
             ``"omp"`` (OpenMP, a second runtime next to torch's), ``"tbb"`` (needs TBB >= 2021.6)
             or ``"default"`` (numba's own choice: tbb, else omp, else workqueue). Takes effect only
@@ -74,19 +79,9 @@ class ThreadPolicy:
             environment alone).
     """
 
-    threads: int | None = None
-    numba_layer: str = "workqueue"
-    wait_policy: str | None = "passive"
-
-    def __post_init__(self) -> None:
-        if self.threads is not None and int(self.threads) < 1:
-            raise ValueError(f"ThreadPolicy.threads must be >= 1 or None, got {self.threads}")
-        if self.numba_layer not in _LAYERS:
-            raise ValueError(f"ThreadPolicy.numba_layer must be one of {_LAYERS}, got {self.numba_layer!r}")
-        if self.wait_policy is not None and self.wait_policy not in _WAIT_POLICIES:
-            raise ValueError(
-                f"ThreadPolicy.wait_policy must be one of {_WAIT_POLICIES} or None, got {self.wait_policy!r}"
-            )
+    threads: int | None = field(default=None, metadata=at_least(1))
+    numba_layer: NumbaLayer = "workqueue"
+    wait_policy: WaitPolicy | None = "passive"
 
     # ------------------------------------------------------------------------ resolution
     def resolved_threads(self) -> int:
@@ -170,16 +165,13 @@ class ThreadPolicy:
         return _applied
 
     # ------------------------------------------------------------------------ persistence
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
     @classmethod
-    def from_dict(cls, data: "dict[str, Any] | ThreadPolicy | None") -> "ThreadPolicy":
+    def from_dict(cls, data: "dict[str, Any] | ThreadPolicy | None", where: str = "") -> "ThreadPolicy":
         """Inverse of :meth:`to_dict` (a policy passes through; None gives the default); unknown
-        keys raise ``TypeError``."""
+        keys raise ``KeyError``, bad values ``ValueError`` (:meth:`CheckedConfig.from_dict`)."""
         if isinstance(data, ThreadPolicy):
             return data
-        return cls(**(data or {}))
+        return super().from_dict(data or {}, where)
 
 
 @dataclass

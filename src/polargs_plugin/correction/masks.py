@@ -17,15 +17,20 @@ bright, not excluded. Pixels bright enough for the masks but with a DoLP between
 
 from __future__ import annotations
 
+import typing
+
 import torch
 from torch import Tensor
+
+from polargs_plugin.config import IntermediateDolp
 
 __all__ = ["peak_intensity", "reflective_masks", "INTERMEDIATE_CHOICES"]
 
 #: What happens to bright pixels whose DoLP lies between the overexposed and the specular rule:
 #: "none" (the paper read literally: neither mask), "specular", "overexposed", or
-#: "by_saturation" (saturated -> overexposed, unsaturated -> specular; the default).
-INTERMEDIATE_CHOICES = ("none", "specular", "overexposed", "by_saturation")
+#: "by_saturation" (saturated -> overexposed, unsaturated -> specular; the default): the values of
+#: ``CorrectionConfig.intermediate_dolp``.
+INTERMEDIATE_CHOICES: tuple[str, ...] = typing.get_args(IntermediateDolp)
 
 # Inclusive range ends tolerate float32 rounding of 8-bit values (160 / 255 stored as float32).
 _RANGE_TOL = 1e-6
@@ -66,7 +71,7 @@ def reflective_masks(
     intensity_range: tuple[float, float] = (160 / 255, 1.0),
     *,
     white_level: float = 1.0,
-    intermediate: str = "by_saturation",
+    intermediate: IntermediateDolp = "by_saturation",
     saturated: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     r"""Specular and overexposed masks (inclusive ranges).

@@ -70,7 +70,7 @@ def config_from_env(environ: Mapping[str, str] | None = None, native_terms: Sequ
         try:
             data = json.loads(Path(path).read_text())
             config.update(data)
-        except (OSError, json.JSONDecodeError, KeyError, TypeError, AttributeError) as err:
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:  # ValueError: JSON, kinds, ranges
             raise PolarInputError(path, f"cannot use as {ENV_CONFIG} ({type(err).__name__}: {err})") from err
     return config
 

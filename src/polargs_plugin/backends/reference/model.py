@@ -13,7 +13,7 @@ moments, kept rows keep theirs.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D, SH_C0, quat_to_rotmat, rgb_to_sh, sh_to_rgb
+from polargs_plugin.config import CheckedConfig, at_least, satisfies, within
 from polargs_plugin.kit.append import RAW_NAMES, edit_rows, logit, pad_rows, raw_from_new
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
@@ -41,24 +42,46 @@ __all__ = [
 PARAM_NAMES = RAW_NAMES
 
 
+def _decays_with_means_init(final: float, config: "LearningRates") -> bool:
+    return final >= 0 and (final > 0) == (config.means_init > 0)
+
+
 @dataclass
-class LearningRates:
-    """Vanilla 3DGS learning rates (``arguments/__init__.py``).
+class LearningRates(CheckedConfig):
+    """Vanilla 3DGS learning rates (graphdeco 3DGS's ``arguments/__init__.py``), one Adam group
+    per raw parameter; every default is vanilla's.
 
     The position rate goes from ``means_init`` to ``means_final`` (log-linear) over
-    ``means_max_steps`` and is multiplied by the scene extent.
+    ``means_max_steps`` and is multiplied by the scene extent (:func:`exponential_lr`).
+
+    Attributes:
+        means_init: position rate at step 0, per unit of scene extent; >= 0. Default 1.6e-4.
+        means_final: position rate at ``means_max_steps``; > 0 while ``means_init`` is > 0, 0
+            together with it (positions frozen). Default 1.6e-6.
+        means_delay_mult: with ``means_delay_steps`` > 0, the rate starts at this fraction and
+            ramps up to the decay's over those steps (a sine ramp); in [0, 1]. Default 0.01.
+        means_delay_steps: length of that ramp, in iterations; >= 0 (0: no ramp). Default 0.
+        means_max_steps: iterations of the decay (scaled by ``TrainConfig.schedule_scale``);
+            >= 1. Default 30000.
+        sh_dc: rate of the SH degree-0 coefficients; >= 0. Default 2.5e-3.
+        sh_rest: rate of the higher SH coefficients; >= 0. Default 2.5e-3 / 20.
+        opacity_logits: rate of the opacity logits; >= 0. Default 0.025.
+        log_scales: rate of the log scales; >= 0. Default 5e-3.
+        quats: rate of the rotation quaternions; >= 0. Default 1e-3.
     """
 
-    means_init: float = 1.6e-4
-    means_final: float = 1.6e-6
-    means_delay_mult: float = 0.01
-    means_delay_steps: int = 0
-    means_max_steps: int = 30_000
-    sh_dc: float = 2.5e-3
-    sh_rest: float = 2.5e-3 / 20
-    opacity_logits: float = 0.025
-    log_scales: float = 5e-3
-    quats: float = 1e-3
+    means_init: float = field(default=1.6e-4, metadata=at_least(0))
+    means_final: float = field(
+        default=1.6e-6, metadata=satisfies(_decays_with_means_init, "> 0 while means_init is > 0 (0 only together with it)")
+    )
+    means_delay_mult: float = field(default=0.01, metadata=within(0, 1))
+    means_delay_steps: int = field(default=0, metadata=at_least(0))
+    means_max_steps: int = field(default=30_000, metadata=at_least(1))
+    sh_dc: float = field(default=2.5e-3, metadata=at_least(0))
+    sh_rest: float = field(default=2.5e-3 / 20, metadata=at_least(0))
+    opacity_logits: float = field(default=0.025, metadata=at_least(0))
+    log_scales: float = field(default=5e-3, metadata=at_least(0))
+    quats: float = field(default=1e-3, metadata=at_least(0))
 
 
 def exponential_lr(

@@ -19,39 +19,68 @@ Iterations are 1-based as in vanilla 3DGS. Every schedule number is multiplied b
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import Tensor
 
 from polargs_plugin.backends.reference.model import PARAM_NAMES, GaussianModel
+from polargs_plugin.config import CheckedConfig, above, at_least, within
 from polargs_plugin.types import RenderOut
 
 __all__ = ["DensityConfig", "DensityControl"]
 
 
 @dataclass
-class DensityConfig:
-    """Vanilla 3DGS densification settings (``arguments/__init__.py``, ``densify_and_prune``)."""
+class DensityConfig(CheckedConfig):
+    """Vanilla 3DGS densification settings (graphdeco 3DGS's ``arguments/__init__.py`` and
+    ``densify_and_prune``); every default is vanilla's except ``max_gaussians``.
 
-    grow_grad2d: float = 2e-4
-    grow_scale3d: float = 0.01  # percent_dense
-    split_samples: int = 2
-    split_scale_divisor: float = 1.6  # 0.8 * split_samples
-    prune_opa: float = 0.005
-    prune_scale3d: float = 0.1
-    prune_screen_px: float = 20.0
-    refine_start: int = 500
-    refine_stop: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
+    Iterations are 1-based; the schedule counts are multiplied by ``TrainConfig.schedule_scale``
+    (:meth:`scaled`). World sizes are fractions of the scene extent.
+
+    Attributes:
+        grow_grad2d: mean screen-space positional gradient norm (NDC units) above which a
+            Gaussian is cloned or split; >= 0. Default and vanilla 0.0002.
+        grow_scale3d: Gaussians whose largest scale is at most this fraction of the extent are
+            cloned, larger ones split (vanilla's ``percent_dense``); >= 0. Default 0.01.
+        split_samples: Gaussians a split Gaussian becomes; >= 1. Default and vanilla 2.
+        split_scale_divisor: the split Gaussians' scales are the parent's divided by this
+            (vanilla: 0.8 times ``split_samples``); > 0. Default 1.6.
+        prune_opa: Gaussians with a lower opacity are pruned; an opacity reset sets opacities to
+            twice it; in [0, 1). Default and vanilla 0.005.
+        prune_scale3d: after the first opacity reset, Gaussians larger than this fraction of the
+            extent are pruned; > 0. Default and vanilla 0.1.
+        prune_screen_px: after the first opacity reset, Gaussians whose screen radius exceeded
+            this many pixels since the last refinement are pruned; > 0. Default and vanilla 20.
+        refine_start: refinement runs at iterations after this one; >= 0. Default and vanilla 500.
+        refine_stop: no refinement, and no statistics, from this iteration on; >= 0 (at most
+            ``refine_start``: vanilla density control off). Default and vanilla 15000.
+        refine_every: iterations between refinements; >= 1. Default and vanilla 100.
+        reset_every: iterations between opacity resets; >= 1. Default and vanilla 3000.
+        opacity_reset: reset opacities at all (``TrainConfig.cpu`` turns it off: at vanilla
+            learning rates opacities need a few hundred iterations to recover). Default True.
+        max_gaussians: no clone / split beyond this count; >= 0, or None: unlimited (default, as
+            vanilla). It bounds vanilla density control only: Gaussians appended by the PolarGS
+            densify hook are not capped (capping them at a full model would switch Dense off),
+            so a Full run can exceed it by Dense's appends. They count towards N all the same:
+            once they take N past the cap, clone and split stop until pruning brings N back below
+            it (the CPU preset reaches its 6000 by iteration ~250).
+    """
+
+    grow_grad2d: float = field(default=2e-4, metadata=at_least(0))
+    grow_scale3d: float = field(default=0.01, metadata=at_least(0))
+    split_samples: int = field(default=2, metadata=at_least(1))
+    split_scale_divisor: float = field(default=1.6, metadata=above(0))
+    prune_opa: float = field(default=0.005, metadata=within(0, 1, high_open=True))
+    prune_scale3d: float = field(default=0.1, metadata=above(0))
+    prune_screen_px: float = field(default=20.0, metadata=above(0))
+    refine_start: int = field(default=500, metadata=at_least(0))
+    refine_stop: int = field(default=15_000, metadata=at_least(0))
+    refine_every: int = field(default=100, metadata=at_least(1))
+    reset_every: int = field(default=3000, metadata=at_least(1))
     opacity_reset: bool = True
-    # no clone / split beyond this count (None: unlimited, as vanilla). It bounds vanilla density
-    # control only: Gaussians appended by the PolarGS densify hook are not capped (capping them
-    # at a full model would switch Dense off), so a Full run can exceed it by Dense's appends.
-    # They count towards N all the same: once they take N past the cap, clone and split stop
-    # until pruning brings N back below it (the CPU preset reaches its 6000 by iteration ~250).
-    max_gaussians: int | None = None
+    max_gaussians: int | None = field(default=None, metadata=at_least(0))
 
     def scaled(self, factor: float) -> "DensityConfig":
         """A copy with start, stop, interval and reset interval multiplied by ``factor``."""

@@ -30,7 +30,7 @@ import math
 import random
 import time
 from collections.abc import Iterator, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -47,8 +47,9 @@ from polargs_plugin.backends.reference.model import (
     scene_extent,
 )
 from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D
+from polargs_plugin.backends.reference.rasterizer import Backend
 from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
-from polargs_plugin.config import CPU_FACTOR
+from polargs_plugin.config import CPU_FACTOR, CheckedConfig, above, at_least, satisfies, within
 from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import photometric_loss
 from polargs_plugin.threads import ThreadPolicy
@@ -68,51 +69,89 @@ class TrainingDiverged(RuntimeError):
 CPU_EPS2D = 0.1  # the CPU preset's screen dilation (pixels^2), TrainConfig.cpu
 
 
+def _is_torch_device(name: str, config: Any) -> bool:
+    try:
+        torch.device(name)
+    except (RuntimeError, ValueError):
+        return False
+    return True
+
+
 @dataclass
-class TrainConfig:
+class TrainConfig(CheckedConfig):
     """Reference-trainer settings. Defaults are vanilla 3DGS (30k iterations, SH degree 3).
 
-    ``schedule_scale`` is the ONE factor that shortens every schedule: the density-control
-    start / stop / interval / opacity-reset interval, the SH-degree interval and the length of
-    the position learning-rate decay. Use :meth:`cpu` for short CPU runs.
+    Iterations are 1-based. Use :meth:`cpu` for short CPU runs, :meth:`paper` for the vanilla
+    schedule; every field is checked when the config is built and again by :class:`Trainer`
+    (:class:`~polargs_plugin.config.CheckedConfig`).
 
-    ``eps2d`` is the rasterizer's screen-space low-pass dilation in pixels^2 (vanilla 3DGS's
-    0.3; ``rasterize``), given to the model (:class:`GaussianModel` keeps it with its parameters).
-
-    ``mask_edge_band``: pixels outside a view's mask within this many pixels of it (the mask
-    dilated by a (2b+1)^2 square) are left out of the colour loss; 0 (default, vanilla) keeps
-    every pixel. A binary mask says nothing of how much of a pixel on its edge the object covers,
-    and the rasterizer's low-pass filter spreads an exactly placed surface ~1 px beyond its
-    silhouette, so training against a background there pulls the surface inwards
-    (docs/evaluation.md "The mask's edge"). Only with ``use_masks``.
-
-    ``threads`` is the process's CPU threading policy (:class:`polargs_plugin.threads.ThreadPolicy`:
-    one thread count for torch and numba, numba's threading layer, OpenMP's wait policy), applied
-    when a :class:`Trainer` is built (docs/speed.md). ``log_every``: every how many iterations
-    :meth:`Trainer.train` reads the progress figures (mean loss over those iterations, PSNR of
-    that iteration's view); in between no figure leaves the device.
+    Attributes:
+        iterations: optimisation steps of a run; >= 1. Default and vanilla 30000.
+        schedule_scale: the ONE factor that shortens every schedule: the density-control start /
+            stop / interval / opacity-reset interval, the SH-degree interval and the length of
+            the position learning-rate decay; > 0. Default 1 (vanilla); :meth:`cpu` sets 1/6.
+        sh_degree: highest spherical-harmonics degree of the colours; in [0, 3]. Default and
+            vanilla 3.
+        sh_increase_every: the active SH degree grows by one every this many iterations (times
+            ``schedule_scale``); >= 1. Default and vanilla 1000.
+        seed: seed of the torch, numpy and python generators and of the view order (any
+            integer). Default 0.
+        ssim_weight: share of D-SSIM in the colour loss ``(1 - w) L1 + w D-SSIM``; must equal
+            the hooks' ``losses.ssim_weight`` (refused otherwise); in [0, 1]. Default and
+            vanilla 0.2.
+        background: RGB colour, in [0, 1], the renders are composited on and that replaces the
+            training colour outside a view's mask (with ``use_masks``). Default black (vanilla's
+            default).
+        use_masks: train against the background outside the views' object masks, where they
+            have one. Default True.
+        mask_edge_band: pixels outside a view's mask within this many pixels of it (the mask
+            dilated by a (2b+1)^2 square) are left out of the colour loss; >= 0; 0 (default,
+            vanilla) keeps every pixel. A binary mask says nothing of how much of a pixel on its
+            edge the object covers, and the rasterizer's low-pass filter spreads an exactly
+            placed surface ~1 px beyond its silhouette, so training against a background there
+            pulls the surface inwards (docs/evaluation.md "The mask's edge"). Only with
+            ``use_masks``.
+        num_init_points: initial Gaussians sampled on the visual hull of the masks (when no
+            points are given to the :class:`Trainer`); >= 1. Default 10000.
+        init_resolution: voxels per side of the visual-hull grid; >= 1. Default 64.
+        initial_opacity: opacity of the initial Gaussians; in (0, 1). Default and vanilla 0.1.
+        eps2d: the rasterizer's screen-space low-pass dilation, in pixels^2 (``rasterize``),
+            given to the model (:class:`GaussianModel` keeps it with its parameters); >= 0.
+            Default and vanilla 0.3; :meth:`cpu` sets 0.1.
+        lrs: the learning rates (:class:`LearningRates`, vanilla's).
+        density: vanilla density control (:class:`DensityConfig`).
+        device: torch device of the training, e.g. ``"cpu"`` or ``"cuda:0"``. Default ``"cpu"``.
+        backend: the rasterizer's compositing path: ``"torch"`` (exact reference, any device),
+            ``"numba"`` (compiled CPU kernel) or ``"auto"`` (default: numba on CPU).
+        progress: show a progress bar. Default True.
+        threads: the process's CPU threading policy (:class:`polargs_plugin.threads.ThreadPolicy`:
+            one thread count for torch and numba, numba's threading layer, OpenMP's wait policy),
+            applied when a :class:`Trainer` is built (docs/speed.md).
+        log_every: every how many iterations :meth:`Trainer.train` reads the progress figures
+            (mean loss over those iterations, PSNR of that iteration's view); in between no
+            figure leaves the device; >= 1. Default 10.
     """
 
-    iterations: int = 30_000
-    schedule_scale: float = 1.0
-    sh_degree: int = 3
-    sh_increase_every: int = 1000
+    iterations: int = field(default=30_000, metadata=at_least(1))
+    schedule_scale: float = field(default=1.0, metadata=above(0))
+    sh_degree: int = field(default=3, metadata=within(0, 3))
+    sh_increase_every: int = field(default=1000, metadata=at_least(1))
     seed: int = 0
-    ssim_weight: float = 0.2
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ssim_weight: float = field(default=0.2, metadata=within(0, 1))
+    background: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=within(0, 1))
     use_masks: bool = True
-    mask_edge_band: int = 0
-    num_init_points: int = 10_000
-    init_resolution: int = 64
-    initial_opacity: float = 0.1
-    eps2d: float = DEFAULT_EPS2D
+    mask_edge_band: int = field(default=0, metadata=at_least(0))
+    num_init_points: int = field(default=10_000, metadata=at_least(1))
+    init_resolution: int = field(default=64, metadata=at_least(1))
+    initial_opacity: float = field(default=0.1, metadata=within(0, 1, low_open=True, high_open=True))
+    eps2d: float = field(default=DEFAULT_EPS2D, metadata=at_least(0))
     lrs: LearningRates = field(default_factory=LearningRates)
     density: DensityConfig = field(default_factory=DensityConfig)
-    device: str = "cpu"
-    backend: str = "auto"
+    device: str = field(default="cpu", metadata=satisfies(_is_torch_device, "a torch device such as 'cpu' or 'cuda:0'"))
+    backend: Backend = "auto"
     progress: bool = True
     threads: ThreadPolicy = field(default_factory=ThreadPolicy)
-    log_every: int = 10
+    log_every: int = field(default=10, metadata=at_least(1))
 
     @classmethod
     def paper(cls, **overrides: Any) -> "TrainConfig":
@@ -134,7 +173,7 @@ class TrainConfig:
         ``PolarConfig.cpu_demo()`` (the PolarGS schedules at 1/2: Dense 500-3500 every 50, L_dn
         from 3500; ``polargs_plugin.config.polar_schedule_factor``). docs/speed.md "CPU preset"
         gives the reasons and the wall times."""
-        cfg = cls(
+        preset = dict(
             iterations=round(30_000 * factor),
             schedule_scale=factor,
             sh_degree=1,
@@ -143,21 +182,7 @@ class TrainConfig:
             eps2d=CPU_EPS2D,
             mask_edge_band=1,
         )
-        return dataclasses.replace(cfg, **overrides)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
-        """Inverse of :meth:`to_dict`."""
-        data = dict(data)
-        lrs = LearningRates(**data.pop("lrs", {}))
-        density = DensityConfig(**data.pop("density", {}))
-        threads = ThreadPolicy.from_dict(data.pop("threads", None))
-        if "background" in data:
-            data["background"] = tuple(data["background"])
-        return cls(lrs=lrs, density=density, threads=threads, **data)
+        return cls(**{**preset, **overrides})  # checked once, with the overrides in
 
 
 class Trainer:
@@ -188,10 +213,7 @@ class Trainer:
             raise ValueError("Trainer: no training views")
         self.config = config or TrainConfig()
         cfg = self.config
-        if cfg.log_every < 1:
-            raise ValueError(f"TrainConfig.log_every must be >= 1, got {cfg.log_every}")
-        if cfg.mask_edge_band < 0:
-            raise ValueError(f"TrainConfig.mask_edge_band must be >= 0 pixels, got {cfg.mask_edge_band}")
+        cfg.validate("config")  # attributes may have been reassigned since it was built
         self.threads = cfg.threads.apply()  # process-wide thread counts / layer (polargs_plugin.threads)
         _seed_everything(cfg.seed)
         self.device = torch.device(cfg.device)
