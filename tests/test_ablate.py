@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from polargs_plugin.ablation.cell import Cell, CellFailed, run_cell
+from polargs_plugin.io import PolarInputError
 from polargs_plugin.ablation.gather import gather
 from polargs_plugin.ablation.grid import expand, run_grid
 from polargs_plugin.ablation.scenes import SceneSpec, parse_scene
@@ -55,7 +56,7 @@ def test_variant_switches():
         assert train.density.max_gaussians == 10 and l.ssim_weight == train.ssim_weight
         assert polar.densify.patchmatch.seed == 3
     assert set(expected) | {"base"} == set(VARIANTS)
-    with pytest.raises(KeyError, match="nonsense"):
+    with pytest.raises(PolarInputError, match="--polar-set: polar.losses: unknown setting 'nonsense'"):
         variant_configs("full", polar_overrides={"losses": {"nonsense": 1}})
 
 
@@ -111,7 +112,7 @@ def test_mesh_error_is_the_exact_signed_distance(tmp_path):
     import open3d as o3d
     from scipy.spatial import cKDTree
 
-    from polargs_plugin.ablation.cell import mesh_error
+    from polargs_plugin.ablation.artifacts import mesh_error
     from polargs_plugin.metrics import sample_surface
 
     def sphere(radius: float) -> o3d.geometry.TriangleMesh:
@@ -165,7 +166,7 @@ def test_mesh_error_flags_the_vertices_the_evaluation_measures(tmp_path):
     import open3d as o3d
     from test_metrics import silhouette_view
 
-    from polargs_plugin.ablation.cell import EVAL_CULL_DILATION, mesh_error
+    from polargs_plugin.ablation.artifacts import EVAL_CULL_DILATION, mesh_error
     from polargs_plugin.metrics import cull_to_masks, mesh_silhouettes
 
     views = [silhouette_view(np.array(e, dtype=np.float64)) for e in ([3, 0, 1], [0, 3, 1], [-3, -1, 0.5])]
@@ -350,8 +351,8 @@ def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, 
     """--format / --pattern / --bit-depth / --no-pattern-check of `polargs ablate` become the cell's
     ``reader`` (plain data, JSON round trip), reach load_dataset, and are recorded in summary.json
     under "reader" as `polargs train` records them (what `polargs mesh` / `eval` re-read with)."""
-    import polargs_plugin.cli.mesh as mesh_cli
-    import polargs_plugin.cli.train as train_cli
+    import polargs_plugin.ablation.cell as cell_module
+    import polargs_plugin.service.data as service_data
     from polargs_plugin.data.synthetic import generate_scene
 
     data = tmp_path / "data"
@@ -360,18 +361,23 @@ def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, 
     views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
     calls, summaries = [], []
 
-    def fake_load(spec, fmt="auto", info=None, **options):
-        calls.append((spec, fmt, options))
-        if info is not None:
-            info.update(format=fmt, pattern="mono")  # what a polar folder's reader reports
-        return views
+    def fake_load(spec, options):
+        calls.append((spec, options.fmt, options.reader_kwargs()))
+        # what a polar folder's reader reports
+        return service_data.Dataset(spec, views, options.fmt, options, pattern="mono")
 
-    def stop_at_mesh(args):  # the preliminary summary is what `polargs mesh` reads
-        summaries.append(json.loads((Path(args.run_dir) / "summary.json").read_text()))
+    summary_of = cell_module._summary
+
+    def record_summary(*args):
+        summaries.append(summary_of(*args))
+        return summaries[-1]
+
+    def stop_at_mesh(*args):
         raise RuntimeError("stopped before meshing")
 
-    monkeypatch.setattr(train_cli, "load_dataset", fake_load)
-    monkeypatch.setattr(mesh_cli, "run", stop_at_mesh)
+    monkeypatch.setattr(service_data, "load_dataset", fake_load)
+    monkeypatch.setattr(cell_module, "_summary", record_summary)
+    monkeypatch.setattr(cell_module, "_mesh", stop_at_mesh)
     out = tmp_path / "out"
     reader_flags = ["--format", "polar", "--pattern", "mono", "--bit-depth", "12", "--no-pattern-check"]
     status = main(["ablate", "--scenes", f"mine={data}", "--variants", "base", "--out", str(out), "--jobs", "1", "--quiet",
@@ -394,10 +400,10 @@ def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, 
 def test_reader_options_on_bundled_scenes_name_the_option(tmp_path, capsys):
     assert main(["ablate", "--scenes", SCENE, "--pattern", "mono", "--out", str(tmp_path / "a")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: --pattern apply to dataset folders") and SCENE in err and "\n" not in err
+    assert err.startswith("error: --pattern: only for dataset folders") and SCENE in err and "\n" not in err
     assert main(["demo", "--bit-depth", "12", "--sfm", "--out", str(tmp_path / "b")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: --bit-depth, --sfm apply to dataset folders") and "\n" not in err
+    assert err.startswith("error: --bit-depth, --sfm: only for dataset folders") and "\n" not in err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 

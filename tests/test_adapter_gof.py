@@ -6,14 +6,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-import polargs_plugin.data.registry as registry
+import polargs_plugin.service.adapters as service_adapters
 from polargs_adapters.gof import GofAdapter, attach
 from polargs_plugin import PolarConfig
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.config import LossConfig
 from polargs_plugin.data.synthetic import generate_scene
-from polargs_plugin.kit.inria import ENV_DATA
+from polargs_plugin.service.adapters import ENV_DATA
+from polargs_plugin.service.data import Dataset
 from polargs_plugin.types import NewGaussians
 from standins import gof
 
@@ -77,7 +78,7 @@ def test_views_carry_the_cameras_geometry_and_the_datasets_stokes(scene) -> None
 
 def test_attach_reads_the_environment_and_keeps_kernel_size(scene, monkeypatch) -> None:
     trainer_scene, model = _trainer(scene)
-    monkeypatch.setattr(registry, "load_views", lambda path: scene.views)
+    monkeypatch.setattr(service_adapters, "load_dataset", lambda path: Dataset(path, scene.views, "fake"))
     monkeypatch.setenv(ENV_DATA, "/somewhere/polar")
     monkeypatch.setenv("POLARGS_PRESET", "synthetic")
     polar = attach(trainer_scene, model, None, gof.render, kernel_size=KERNEL_SIZE)

@@ -82,6 +82,7 @@ def test_neisf_warns_on_poses_outside_its_normalisation(tmp_path):
 
 def test_check_command(tmp_path, capsys):
     from polargs_plugin.cli import check as check_cli
+    from polargs_plugin.cli import main
     from polargs_plugin.data.nersp import write_nersp
 
     parser = argparse.ArgumentParser()
@@ -95,7 +96,5 @@ def test_check_command(tmp_path, capsys):
     assert json.loads((tmp_path / "r.json").read_text())["verdict"] == "consistent"
     args = parser.parse_args(["check", str(tmp_path / "bad")])
     assert args.func(args) == 1 and "mirrored" in capsys.readouterr().out
-    args = parser.parse_args(["check", str(tmp_path / "missing")])
-    with pytest.raises(SystemExit) as exc:
-        args.func(args)
-    assert exc.value.code == 2 and capsys.readouterr().err.startswith("error: ")
+    assert main(["check", str(tmp_path / "missing")]) == 2
+    assert capsys.readouterr().err.startswith("error: ")

@@ -93,10 +93,10 @@ def test_sfm_on_too_few_views_says_what_it_needs(tmp_path, capsys):
 
 
 def test_reader_options_on_a_synthetic_scene_name_the_option(tmp_path, capsys):
-    from polargs_plugin.cli import train as train_cli
+    from polargs_plugin.service import ReaderOptions, load_dataset
 
     with pytest.raises(Exception) as info:
-        train_cli.load_dataset("synthetic:shiny_torus", pattern="mono")
+        load_dataset("synthetic:shiny_torus", ReaderOptions(pattern="mono"))
     assert "--pattern" in str(info.value) and "synthetic:shiny_torus" in str(info.value)
 
 
@@ -150,23 +150,24 @@ def test_errors_are_one_line_without_traceback_in_a_real_process(tmp_path):
 def test_mesh_rereads_the_views_with_the_runs_reader_options(tmp_path, monkeypatch):
     """`polargs mesh` on a run folder reads the dataset with summary.json's "reader" entry (as
     `polargs train` and `polargs ablate` record it), here pattern="mono"."""
-    import polargs_plugin.cli.train as train_cli
+    import polargs_plugin.service.runs as runs
     from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+    from polargs_plugin.service.data import Dataset
 
     views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
     trainer = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=100, iterations=1))
     trainer.step()
     run_dir = tmp_path / "run"
     run_dir.mkdir()
-    trainer.save_checkpoint(run_dir / train_cli.CHECKPOINT_NAME)
+    trainer.save_checkpoint(run_dir / runs.CHECKPOINT_NAME)
     dataset = tmp_path / "polar"  # never read: the loader is replaced
-    (run_dir / train_cli.SUMMARY_NAME).write_text(json.dumps({"dataset": str(dataset), "reader": {"pattern": "mono"}}))
+    (run_dir / runs.SUMMARY_NAME).write_text(json.dumps({"dataset": str(dataset), "reader": {"pattern": "mono"}}))
     calls = []
 
-    def fake_load(spec, fmt="auto", info=None, **options):
-        calls.append((spec, fmt, options))
-        return views
+    def fake_load(spec, options):
+        calls.append((spec, options.fmt, options.reader_kwargs()))
+        return Dataset(spec, views, "polar", options)
 
-    monkeypatch.setattr(train_cli, "load_dataset", fake_load)
+    monkeypatch.setattr(runs, "load_dataset", fake_load)
     assert main(["mesh", str(run_dir), "--out", str(tmp_path / "mesh.ply")]) == 0
     assert calls == [(str(dataset), "auto", {"pattern": "mono"})]

@@ -32,7 +32,7 @@ from polargs_plugin.ablation.executors import (
 )
 from polargs_plugin.ablation.grid import _init_worker
 from polargs_plugin.cli import main
-from polargs_plugin.cli.train import CHECKPOINT_NAME
+from polargs_plugin.service.runs import CHECKPOINT_NAME
 
 SCENE = "glossy_plane_sphere"
 TINY = ["--views", "6", "--size", "32x32", "--factor", "0.002", "--eval-samples", "20000",

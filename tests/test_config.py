@@ -336,19 +336,14 @@ def test_every_field_is_documented_in_its_class_docstring():
 
 
 # ------------------------------------------------------------------------------ from the command line
-# `polargs train` reports the range of a `--config` value once the command passes where="polar" /
-# "train" to the configs' from_dict and prints their ValueError after the file's name; until then
-# these cases are expected to fail (the mode cases pass already).
-_CLI_WIRING = pytest.mark.xfail(strict=True, reason="polargs train does not yet report config range errors as FILE: SECTION.FIELD")
-
 CLI_CASES = [
-    pytest.param("polar", "densify.interval", 0, "must be a positive integer, got 0", marks=_CLI_WIRING),
+    pytest.param("polar", "densify.interval", 0, "must be a positive integer, got 0"),
     pytest.param("polar", "correction.specular_dolp", [0.9, 0.3],
-                 "must be a pair (low, high) with 0 <= low <= high <= 1, got (0.9, 0.3)", marks=_CLI_WIRING),
+                 "must be a pair (low, high) with 0 <= low <= high <= 1, got (0.9, 0.3)"),
     pytest.param("polar", "densify.patchmatch.azimuth_model", "ortho",
                  "expected one of 'orthographic', 'perspective', got 'ortho'"),
-    pytest.param("train", "iterations", 0, "must be a positive integer, got 0", marks=_CLI_WIRING),
-    pytest.param("train", "density.max_gaussians", -1, "must be a non-negative integer or null, got -1", marks=_CLI_WIRING),
+    pytest.param("train", "iterations", 0, "must be a positive integer, got 0"),
+    pytest.param("train", "density.max_gaussians", -1, "must be a non-negative integer or null, got -1"),
     pytest.param("train", "backend", "cuda", "expected one of 'auto', 'torch', 'numba', got 'cuda'"),
 ]
 

@@ -25,7 +25,8 @@ class NormalStandIn:
 
 def test_eval_normals_on_an_smvp3d_folder(tmp_path, monkeypatch, capsys):
     """The SMVP3D/NeRSP reader loads camera-frame GT normals (`normal/`), so --normals works."""
-    import polargs_plugin.cli.mesh as cli_mesh
+    import polargs_plugin.service.evaluation as patched
+    from polargs_plugin.service import Dataset, Run
     from polargs_plugin.data.nersp import write_nersp
     from polargs_plugin.data.registry import load_views
 
@@ -36,7 +37,7 @@ def test_eval_normals_on_an_smvp3d_folder(tmp_path, monkeypatch, capsys):
         views = load_views(tmp_path / "smvp3d")
     assert all(v.normal_gt is not None for v in views)
     model = NormalStandIn({v.name: s.normal_gt for v, s in zip(views, scene.views)})
-    monkeypatch.setattr(cli_mesh, "load_run", lambda run_dir: (model, views))
+    monkeypatch.setattr(patched, "load_run", lambda run_dir: Run(run_dir, model, Dataset("fake", views, "fake"), {}))
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     assert main(["eval", str(run_dir), "--normals", "--quiet"]) == 0
@@ -60,10 +61,9 @@ def test_eval_and_mesh_errors_are_one_line(tmp_path, capsys):
         (["mesh", str(tmp_path / "missing")], "run folder not found"),
     ]
     for argv, text in cases:
-        with pytest.raises(SystemExit) as exc:
-            main(argv)
+        status = main(argv)
         err = capsys.readouterr().err.strip().splitlines()
-        assert exc.value.code == 2 and len(err) == 1 and err[0].startswith("error: ") and text in err[0], (argv, err)
+        assert status == 2 and len(err) == 1 and err[0].startswith("error: ") and text in err[0], (argv, err)
         assert "Traceback" not in err[0]
 
 
@@ -95,7 +95,8 @@ def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch):
     90 deg x their share of each mask."""
     import numpy as np
 
-    import polargs_plugin.cli.mesh as cli_mesh
+    import polargs_plugin.service.evaluation as patched
+    from polargs_plugin.service import Dataset, Run
     from polargs_plugin.data.registry import load_views
     from polargs_plugin.data.scene_format import read_gt_mesh, write_scene
 
@@ -118,7 +119,7 @@ def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch):
         normals[view.name] = torch.where(wrong, side / side.norm(dim=0, keepdim=True).clamp_min(1e-12), gt)
         expected.append(90.0 * float(wrong.sum()) / float((view.mask.bool() & (gt.norm(dim=0, keepdim=True) > 0)).sum()))
     assert min(expected) > 10.0  # the floor is a large share of every mask
-    monkeypatch.setattr(cli_mesh, "load_run", lambda run_dir: (NormalStandIn(normals), views))
+    monkeypatch.setattr(patched, "load_run", lambda run_dir: Run(run_dir, NormalStandIn(normals), Dataset("fake", views, "fake"), {}))
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     import open3d as o3d

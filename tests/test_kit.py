@@ -289,7 +289,7 @@ def test_trainer_refuses_a_second_ssim_weight() -> None:
 
 
 def test_config_from_env_gates_native_terms_before_the_json_file(tmp_path) -> None:
-    from polargs_plugin.kit.inria import config_from_env
+    from polargs_plugin.service.configs import config_from_environment as config_from_env
 
     native = ("use_depth_normal", "use_scale")
     cfg = config_from_env({}, native_terms=native)
@@ -301,11 +301,10 @@ def test_config_from_env_gates_native_terms_before_the_json_file(tmp_path) -> No
     cfg = config_from_env({"POLARGS_CONFIG": str(path)}, native_terms=native)
     assert cfg.losses.use_scale and not cfg.losses.use_depth_normal and cfg.losses.alpha_normal == 0.3
     path.write_text('{"losses": {"alpha_nromal": 0.3}}')
-    with pytest.raises(ValueError, match="polar.json: cannot use as POLARGS_CONFIG .*unknown setting 'alpha_nromal'"):
+    with pytest.raises(ValueError, match="polar.json: polar.losses: unknown setting 'alpha_nromal'"):
         config_from_env({"POLARGS_CONFIG": str(path)})
     path.write_text('{"densify": {"interval": 0}}')
-    with pytest.raises(ValueError, match=re.escape("polar.json: cannot use as POLARGS_CONFIG (ValueError: densify.interval: "
-                                                   "must be a positive integer, got 0)")):
+    with pytest.raises(ValueError, match=re.escape("polar.json: polar.densify.interval: must be a positive integer, got 0")):
         config_from_env({"POLARGS_CONFIG": str(path)})
-    with pytest.raises(ValueError, match="POLARGS_PRESET='paper': unknown preset"):
+    with pytest.raises(ValueError, match="POLARGS_PRESET: unknown preset 'paper'"):
         config_from_env({"POLARGS_PRESET": "paper"})

@@ -187,7 +187,9 @@ class AnalyticSphereModel:
 def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
     import json
 
-    import polargs_plugin.cli.mesh as cli_mesh
+    import polargs_plugin.cli.mesh as mesh_cli
+    import polargs_plugin.service.evaluation as evaluation
+    from polargs_plugin.service import Dataset, Run
     from polargs_plugin.cli import main
 
     depths, _, Ks, w2cs, masks = sphere_inputs()
@@ -200,7 +202,8 @@ def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
         m = torch.nn.functional.normalize(torch.cross(n, torch.tensor([1.0, 0, 0]).double().view(3, 1, 1).expand_as(n), dim=0), dim=0)
         view.normal_gt = (math.cos(0.3) * n + math.sin(0.3) * m).float()
         views.append(view)
-    monkeypatch.setattr(cli_mesh, "load_run", lambda run_dir: (model, views))
+    for module in (mesh_cli, evaluation):  # the run is the analytic model, not a folder
+        monkeypatch.setattr(module, "load_run", lambda run_dir: Run(run_dir, model, Dataset("fake", views, "fake"), {}))
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     gt_path = write_mesh(tmp_path / "gt.ply", o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=80))
@@ -217,13 +220,12 @@ def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
     assert "Chamfer (mean)" in printed and "normal MAE" in printed
 
     capsys.readouterr()
-    with pytest.raises(SystemExit) as exc:  # ordinary errors: one `error:` line, exit status 2, no traceback
-        main(["eval", str(tmp_path / "missing"), "--gt", str(gt_path)])
-    assert exc.value.code == 2 and "neither a run folder nor a mesh file" in str(exc.value)
-    with pytest.raises(SystemExit, match="needs a run folder"):
-        main(["eval", str(gt_path), "--gt", str(gt_path), "--normals"])
+    # ordinary errors: one `error:` line, exit status 2, no traceback
+    assert main(["eval", str(tmp_path / "missing"), "--gt", str(gt_path)]) == 2
+    assert main(["eval", str(gt_path), "--gt", str(gt_path), "--normals"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("error: ") for line in err)
+    assert "neither a run folder nor a mesh file" in err[0] and "needs a run folder" in err[1]
 
 
 def test_tsdf_of_exact_depth_has_no_signed_bias():

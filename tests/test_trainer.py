@@ -395,7 +395,7 @@ def test_cpu_preset_runs_the_paper_polargs_schedule_at_half_its_counts():
     100 and L_dn start 7k scaled by 1/2 (at most 2x), the same in the library, `polargs ablate` and
     `polargs train --schedule cpu`; a --factor F scales PolarGS by min(1, 3F)."""
     from polargs_plugin.ablation.variants import polar_config as variant_polar, train_config as variant_train
-    from polargs_plugin.cli.train import polar_config as cli_polar
+    from polargs_plugin.service.configs import polar_config as cli_polar
     from polargs_plugin.config import PolarConfig, polar_schedule_factor
 
     paper = PolarConfig.synthetic()

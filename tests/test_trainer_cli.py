@@ -18,6 +18,8 @@ import torch
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
 from polargs_plugin.cli import train as train_cli
+from polargs_plugin.service import train as service_train
+from polargs_plugin.service.data import Dataset
 from polargs_plugin.types import View
 
 
@@ -57,7 +59,7 @@ def main(argv: list[str]) -> int:
 @pytest.fixture
 def fake_dataset(monkeypatch):
     views = _views()
-    monkeypatch.setattr(train_cli, "load_dataset", lambda spec, *a, **k: views)
+    monkeypatch.setattr(service_train, "load_dataset", lambda spec, *a, **k: Dataset(spec, views, "fake"))
     # the CLI plumbing is under test, not the preset: fewer initial points keep it fast
     small = TrainConfig.cpu(num_init_points=100)
     monkeypatch.setattr(TrainConfig, "cpu", classmethod(lambda cls: small))
@@ -290,14 +292,14 @@ def test_resume_on_other_data_with_the_same_names_is_refused(fake_dataset, tmp_p
     run = tmp_path / "run"
     assert main(["train", "fake", "--out", str(run), "--iters", "2", "--no-polar", "--quiet"]) == 0
     other = [View(v.name, v.K, v.world_to_camera, v.stokes.roll(5, -1), v.mask.roll(5, -1)) for v in fake_dataset]
-    monkeypatch.setattr(train_cli, "load_dataset", lambda spec, *a, **k: other)
+    monkeypatch.setattr(service_train, "load_dataset", lambda spec, *a, **k: Dataset(spec, other, "fake"))
     assert main(["train", "fake", "--out", str(run), "--iters", "4", "--no-polar", "--quiet", "--resume"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {run / 'fingerprint.json'}: --resume on other data") and "images of 4 of 4 views" in err
     moved = [View(v.name, v.K, v.world_to_camera.clone(),
                   v.stokes, v.mask) for v in fake_dataset]
     moved[0].world_to_camera[0, 3] += 0.5
-    monkeypatch.setattr(train_cli, "load_dataset", lambda spec, *a, **k: moved)
+    monkeypatch.setattr(service_train, "load_dataset", lambda spec, *a, **k: Dataset(spec, moved, "fake"))
     assert main(["train", "fake", "--out", str(run), "--iters", "4", "--no-polar", "--quiet", "--resume"]) == 2
     assert "cameras of 1 of 4 views (v0)" in capsys.readouterr().err
     assert _summary(run)["iterations"] == 2  # untouched

@@ -51,6 +51,7 @@ from typing import Any, ClassVar, Mapping
 from torch import Tensor
 
 from polargs_plugin.kit.inria import InriaAdapter
+from polargs_plugin.service.adapters import adapter_inputs
 from polargs_plugin.types import RenderOut
 
 __all__ = ["GofAdapter", "attach", "GOF_CHANNELS"]
@@ -106,9 +107,10 @@ def attach(scene: Any, gaussians: Any, pipe: Any, render: Any, **render_kwargs: 
     ``polargs_gof.attach(scene, gaussians, pipe, render, kernel_size=dataset.kernel_size)``.
 
     Settings come from the environment: ``POLARGS_DATA`` (required), ``POLARGS_PRESET``,
-    ``POLARGS_CONFIG`` (see ``polargs_plugin.kit.inria``). ``render_kwargs`` are passed to every
+    ``POLARGS_CONFIG`` (see ``polargs_plugin.service.adapters``). ``render_kwargs`` are passed to every
     render the adapter makes; GOF needs ``kernel_size``.
     """
     if "kernel_size" not in render_kwargs:
         raise TypeError("attach() needs kernel_size=dataset.kernel_size: GOF's render() has no default for it")
-    return GofAdapter.attach(scene, gaussians, pipe, render, **render_kwargs)
+    inputs = adapter_inputs(tuple(GofAdapter.native_terms))
+    return GofAdapter.from_inputs(inputs, scene, gaussians, pipe, render, **render_kwargs)

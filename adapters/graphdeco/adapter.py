@@ -30,6 +30,7 @@ from torch import Tensor
 
 from polargs_plugin.kit import clamped_aux_colors, render_out_from_clamped_aux
 from polargs_plugin.kit.inria import InriaAdapter
+from polargs_plugin.service.adapters import adapter_inputs
 from polargs_plugin.types import RenderOut
 
 __all__ = ["GraphdecoAdapter", "attach"]
@@ -67,5 +68,6 @@ class GraphdecoAdapter(InriaAdapter):
 
 def attach(scene: Any, gaussians: Any, pipe: Any, render: Any, **render_kwargs: Any) -> GraphdecoAdapter:
     """The call the patch script inserts before the training loop (settings from the environment:
-    ``POLARGS_DATA``, ``POLARGS_PRESET``, ``POLARGS_CONFIG``; see ``polargs_plugin.kit.inria``)."""
-    return GraphdecoAdapter.attach(scene, gaussians, pipe, render, **render_kwargs)
+    ``POLARGS_DATA``, ``POLARGS_PRESET``, ``POLARGS_CONFIG``; see ``polargs_plugin.service.adapters``)."""
+    inputs = adapter_inputs(tuple(GraphdecoAdapter.native_terms))
+    return GraphdecoAdapter.from_inputs(inputs, scene, gaussians, pipe, render, **render_kwargs)

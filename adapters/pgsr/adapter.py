@@ -47,6 +47,7 @@ from torch import Tensor
 
 from polargs_plugin.kit import depth_from_plane
 from polargs_plugin.kit.inria import InriaAdapter
+from polargs_plugin.service.adapters import adapter_inputs
 from polargs_plugin.ssim import ssim_map
 from polargs_plugin.types import RenderOut, View
 
@@ -125,5 +126,6 @@ class PgsrAdapter(InriaAdapter):
 def attach(scene: Any, gaussians: Any, pipe: Any, render: Any, **render_kwargs: Any) -> PgsrAdapter:
     """The call the patch script inserts before the training loop, ``app_model=app_model`` in
     ``render_kwargs`` (settings from the environment: ``POLARGS_DATA``, ``POLARGS_PRESET``,
-    ``POLARGS_CONFIG``; see ``polargs_plugin.kit.inria``)."""
-    return PgsrAdapter.attach(scene, gaussians, pipe, render, **render_kwargs)
+    ``POLARGS_CONFIG``; see ``polargs_plugin.service.adapters``)."""
+    inputs = adapter_inputs(tuple(PgsrAdapter.native_terms))
+    return PgsrAdapter.from_inputs(inputs, scene, gaussians, pipe, render, **render_kwargs)

@@ -29,7 +29,6 @@ A cache entry whose values are not finite or whose shapes do not fit the view is
 
 from __future__ import annotations
 
-import hashlib
 import json
 import numbers
 import pickle
@@ -39,7 +38,6 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -47,7 +45,9 @@ from polargs_plugin.config import PolarConfig
 from polargs_plugin.correction import compute_polar_maps, input_range, physical_stokes
 from polargs_plugin.io import PolarInputError, atomic_path
 from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, normals_within, scale_loss
-from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View, describe_view, validate_view
+from polargs_plugin.types import (
+    GaussianState, NewGaussians, PolarMaps, RenderOut, View, content_digest, describe_view, validate_view,
+)
 
 __all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]
 
@@ -67,16 +67,8 @@ def maps_cache_key(view: View, config: PolarConfig) -> str:
     Returns:
         Hex digest.
     """
-    digest = hashlib.sha256()
-    digest.update(json.dumps({"version": _CACHE_VERSION, "correction": asdict(config.correction)}).encode())
-    for tensor in (view.stokes, view.mask):
-        if tensor is None:
-            digest.update(b"none")
-            continue
-        array = tensor.detach().cpu().contiguous().numpy()
-        digest.update(f"{array.dtype}{array.shape}".encode())
-        digest.update(np.ascontiguousarray(array).data)
-    return digest.hexdigest()
+    settings = json.dumps({"version": _CACHE_VERSION, "correction": asdict(config.correction)}).encode()
+    return content_digest(view, settings)
 
 
 def maps_cache_file(cache_dir: Path, view: View, key: str) -> Path:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import socket
 import tempfile
@@ -25,6 +26,8 @@ __all__ = [
     "check_writable",
     "FolderLock",
     "FolderLockedError",
+    "json_safe",
+    "write_json",
 ]
 
 
@@ -80,6 +83,29 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
     with atomic_path(path) as tmp:
         with open(tmp, mode) as handle:
             yield handle
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` as strict JSON can hold it: NaN and infinities become None (null), tuples lists,
+    keys strings; dicts and lists are converted all the way down.
+
+    >>> json_safe({"a": float("nan"), 1: (2.0, float("inf"))})
+    {'a': None, '1': [2.0, None]}
+    """
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: str | os.PathLike, data: Any) -> Path:
+    """Write ``data`` as indented strict JSON (:func:`json_safe`), atomically."""
+    with atomic_write(path) as handle:
+        json.dump(json_safe(data), handle, indent=2, allow_nan=False)
+    return Path(path)
 
 
 def check_writable(folder: str | os.PathLike) -> Path:

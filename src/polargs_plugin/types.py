@@ -15,6 +15,7 @@ Conventions, binding everywhere:
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Callable, Protocol, runtime_checkable
 
@@ -25,7 +26,7 @@ from polargs_plugin.io import PolarInputError
 
 __all__ = [
     "View", "PolarMaps", "RenderOut", "GaussianState", "NewGaussians", "TrainingHooks", "RenderFn",
-    "describe_view", "validate_view",
+    "describe_view", "validate_view", "content_digest",
 ]
 
 
@@ -89,6 +90,22 @@ class View:
             if isinstance(getattr(self, f.name), Tensor)
         }
         return replace(self, **moved)
+
+
+def content_digest(view: View, prefix: bytes = b"") -> str:
+    """SHA-256 (hex) of ``prefix`` followed by the view's image content: the dtype, shape and
+    bytes of its Stokes and of its mask. The name and the camera do not enter: what a view's
+    maps are computed from (the maps cache key) and what a run was trained on (its data
+    fingerprint) are both told by this digest."""
+    digest = hashlib.sha256(prefix)
+    for tensor in (view.stokes, view.mask):
+        if tensor is None:
+            digest.update(b"none")
+            continue
+        array = tensor.detach().cpu().contiguous().numpy()
+        digest.update(f"{array.dtype}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def describe_view(view: View) -> str:

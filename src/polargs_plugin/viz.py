@@ -20,8 +20,9 @@ from torch import Tensor
 
 from polargs_plugin.io import atomic_path
 from polargs_plugin.optics import aolp_from_stokes, dolp_from_stokes
+from polargs_plugin.types import PolarMaps
 
-__all__ = ["AOLP_STYLES", "hsv_to_rgb", "aolp_to_rgb", "dolp_to_rgb", "save_png", "save_polar_pictures", "polar_panels", "save_contact_sheet"]
+__all__ = ["AOLP_STYLES", "hsv_to_rgb", "aolp_to_rgb", "dolp_to_rgb", "save_png", "save_polar_pictures", "polar_panels", "save_contact_sheet", "save_map_pictures"]
 
 AOLP_STYLES = ("dark", "light")
 
@@ -244,3 +245,48 @@ def save_contact_sheet(rows: list[list[Tensor]], path: str | os.PathLike, gap: i
             y, x = r * (height + gap), c * (width + gap)
             sheet[:, y : y + height, x : x + width] = picture.detach().float().cpu().expand(3, -1, -1)
     return save_png(path, sheet)
+
+
+# the masks picture: specular pixels tinted magenta, overexposed ones cyan
+_SPECULAR_TINT = (1.0, 0.0, 1.0)
+_OVEREXPOSED_TINT = (0.0, 1.0, 1.0)
+
+
+def _overlay(image: Tensor, masks: list) -> Tensor:
+    out = image.clamp(0, 1).clone()
+    for mask, tint in masks:
+        colour = torch.tensor(tint, dtype=out.dtype)[:, None, None]
+        out = torch.where(mask, 0.4 * out + 0.6 * colour, out)
+    return out
+
+
+def save_map_pictures(maps: PolarMaps, out_dir: Path, prefix: str) -> list[Path]:
+    """Write the pictures of one view's :class:`~polargs_plugin.types.PolarMaps`, as
+    ``polargs preprocess`` does: ``<prefix>_aolp.png`` (hue, DoLP as brightness), ``_dolp.png``
+    and, with PC, ``_masks.png`` (specular magenta, overexposed cyan over the image),
+    ``_i_diff.png``, ``_i_chro.png``, ``_target.png`` (the colour target with I_diff / I_chro
+    swapped in) and ``_pri.png``.
+
+    Args:
+        maps: the view's maps (masks and CRMs may be ``None`` when PC is disabled).
+        out_dir: folder to write into.
+        prefix: file name prefix (the view name).
+
+    Returns:
+        The paths written.
+    """
+    maps_cpu = {name: value.detach().cpu().float() for name, value in vars(maps).items() if isinstance(value, Tensor)}
+    pictures = {
+        "aolp": aolp_to_rgb(maps_cpu["aolp"], maps_cpu["dolp"].clamp(0, 1), "dark"),
+        "dolp": dolp_to_rgb(maps_cpu["dolp"]),
+    }
+    if maps.specular_mask is not None:
+        specular = maps.specular_mask.cpu()
+        chro = (maps.overexposed_mask & maps.extras["i_chro_valid"]).cpu()
+        image = maps_cpu["intensity"]
+        pictures["masks"] = _overlay(image, [(specular, _SPECULAR_TINT), (maps.overexposed_mask.cpu(), _OVEREXPOSED_TINT)])
+        pictures["i_diff"] = maps_cpu["i_diff"]
+        pictures["i_chro"] = maps_cpu["i_chro"]
+        pictures["target"] = torch.where(specular, maps_cpu["i_diff"], torch.where(chro, maps_cpu["i_chro"], image))
+        pictures["pri"] = maps_cpu["pri"]
+    return [save_png(out_dir / f"{prefix}_{name}.png", picture.clamp(0, 1)) for name, picture in pictures.items()]

@@ -29,12 +29,10 @@ Run folder contents::
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import csv
 import datetime
+import functools
 import json
-import math
 import os
 import platform
 import shutil
@@ -44,20 +42,18 @@ import time
 import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
+from polargs_plugin.ablation.artifacts import EVAL_CULL_DILATION, write_curves, write_report_data
 from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, gt_mesh_path
 from polargs_plugin.ablation.variants import DEFAULT_FACTOR, VARIANTS, describe, variant_configs
-from polargs_plugin.io import PolarInputError, atomic_write
-
-if TYPE_CHECKING:  # metrics imports open3d: the cell imports it only when it evaluates
-    from polargs_plugin.metrics import MeshLike
+from polargs_plugin.io import PolarInputError, json_safe, write_json
+from polargs_plugin.service.runs import CHECKPOINT_NAME, MESH_NAME, METRICS_NAME, SUMMARY_NAME
 
 __all__ = ["Cell", "CellFailed", "run_cell", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done",
            "partial_dir", "mark_interrupted", "PARTIAL_DIR"]
 
 RUN_FORMAT = "polargs-ablation-run-v1"
-SUMMARY_NAME = "summary.json"
 CURVES_NAME = "curves.csv"
 INITS: tuple[str, ...] = ("hull", "sfm", "random")
 #: SfM initialisation falls back to the visual hull below this many points.
@@ -66,10 +62,6 @@ MIN_SFM_POINTS = 100
 PARTIAL_DIR = ".partial"
 PARTIAL_STATE = "state.json"
 PARTIAL_LOG = "attempts.log"
-#: periodic checkpoints per training when ``Cell.checkpoint_every`` is None.
-DEFAULT_CHECKPOINTS = 10
-#: `polargs eval`'s silhouette dilation (pixels) for the object region, the cells' default
-EVAL_CULL_DILATION = 2
 
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
 
@@ -98,7 +90,7 @@ class Cell:
             0: none, an interrupted run starts over). Not part of the run's identity.
         reader: options of the dataset reader for a dataset-folder scene, as ``polargs train``
             takes them (``fmt``, ``pattern``, ``bit_depth``, ``sfm``, ``check_pattern``; the
-            keyword arguments of :func:`polargs_plugin.cli.train.load_dataset`). Empty for a
+            fields of :class:`polargs_plugin.service.ReaderOptions` that differ from the defaults). Empty for a
             bundled scene. The run's ``summary.json`` records under ``reader`` the options that
             read the same views again (what `polargs mesh` / `polargs eval` use).
     """
@@ -303,13 +295,12 @@ class _Clock:
 
 
 def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
+    """Train, mesh, evaluate and write the report data of ``cell`` into ``tmp``; its summary."""
     import torch
 
-    from polargs_plugin.cli import eval as eval_cli
-    from polargs_plugin.cli import mesh as mesh_cli
-    from polargs_plugin.cli.train import CHECKPOINT_NAME, load_dataset, reader_record
+    from polargs_plugin.service.data import ReaderOptions, load_dataset
 
-    started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+    started = _now()
     if cell.threads > 0:
         torch.set_num_threads(cell.threads)
     clock = _Clock()
@@ -319,33 +310,57 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
         raise PolarInputError(folder, "dataset not found")
     gt_mesh = gt_mesh_path(cell.scene)
     clock.lap("scene")
-    read_info: dict[str, Any] = {}
-    views = load_dataset(str(folder), info=read_info, **cell.reader)
-    reader = reader_record(argparse.Namespace(format=cell.reader.get("fmt", "auto"), bit_depth=cell.reader.get("bit_depth"),
-                                              no_pattern_check=cell.reader.get("check_pattern") is False), read_info)
-    if read_info.get("pattern"):
-        print(f"raw mosaics: {read_info['pattern']}", flush=True)
-    if read_info.get("sfm"):
-        print(f"SfM: model written to {read_info.get('model')}", flush=True)
+    dataset = load_dataset(str(folder), ReaderOptions(**cell.reader))
+    if dataset.pattern:
+        print(f"raw mosaics: {dataset.pattern}", flush=True)
+    if dataset.sfm_model:
+        print(f"SfM: model written to {dataset.sfm_model}", flush=True)
     clock.lap("load")
+    trainer, train_cfg, polar_cfg, figures, init_info = _train(cell, dataset.views, tmp, report, clock)
+    summary = _summary(cell, folder, dataset, gt_mesh, trainer, train_cfg, polar_cfg, init_info)
+    report("mesh", 0, 1)
+    _mesh(cell, trainer, dataset.views, tmp)
+    clock.lap("mesh")
+    report("eval", 0, 1)
+    # a scene folder is handed over as `polargs eval --gt FOLDER` takes it: with its whole-scene
+    # mesh.ply beside gt_mesh.ply as the occluder; a GT given as NAME=PATH:GT_MESH has none
+    eval_gt = gt_mesh if cell.scene.gt_mesh else gt_mesh.parent
+    metrics, cull = _evaluate(cell, trainer, dataset, summary, tmp, eval_gt)
+    clock.lap("eval")
+    report("pictures", 0, 1)
+    from polargs_plugin.service.evaluation import gt_meshes
+
+    write_report_data(trainer, tmp, *gt_meshes(eval_gt), cull)
+    clock.lap("pictures")
+    summary.update(
+        git=_git(),
+        host=platform.node(),
+        versions={"python": platform.python_version(), "torch": torch.__version__},
+        started=started,
+        finished=_now(),
+        timings=clock.total(),
+        figures=_figures(metrics, figures, trainer.curve),
+        eval=_eval_record(metrics, cull, int(cell.eval.get("num_samples", 1_000_000))),
+        files=sorted(p.name for p in tmp.iterdir() if p.name != SUMMARY_NAME) + [SUMMARY_NAME],
+    )
+    write_json(tmp / SUMMARY_NAME, summary)
+    print(f"finished {cell.name}: {json.dumps(summary['figures'])}", flush=True)
+    return summary
+
+
+def _train(cell: Cell, views: list, tmp: Path, report: Progress, clock: "_Clock"):
+    """Build the cell's trainer, resume its partial checkpoint if any, train; copy the final
+    checkpoint into ``tmp`` and write the curves. (trainer, TrainConfig, PolarConfig, figures, init record)."""
+    from polargs_plugin.service.configs import resolve_device
 
     train_cfg, polar_cfg = cell.configs()
-    device = cell.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    device = resolve_device(cell.device)
     train_cfg.device, train_cfg.progress = device, False
     if polar_cfg is not None and polar_cfg.cache_dir is None:
         polar_cfg.cache_dir = str(Path(cell.out) / "cache" / "polar_maps")
-
-    def make_hooks():
-        if polar_cfg is None:
-            return None
-        from polargs_plugin.hooks import PolarHooks
-
-        return PolarHooks(polar_cfg)
-
     init_points, init_info = _initial_points(cell, views, train_cfg)
     clock.lap("init")
-
-    trainer = _make_trainer(views, train_cfg, make_hooks(), init_points, report)
+    trainer = _make_trainer(views, train_cfg, polar_cfg, init_points, report)
     partial = partial_dir(cell)
     try:
         resumed = _resume(cell, trainer, partial)
@@ -353,10 +368,12 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
         print(f"resume: cannot resume from {partial} ({type(err).__name__}: {err}); starting over", flush=True)
         with contextlib.suppress(FileNotFoundError):
             (partial / CHECKPOINT_NAME).unlink()
-        trainer, resumed = _make_trainer(views, train_cfg, make_hooks(), init_points, report), False
+        trainer, resumed = _make_trainer(views, train_cfg, polar_cfg, init_points, report), False
     every = cell.checkpoint_every
     if every is None:
-        every = max(1, math.ceil(train_cfg.iterations / DEFAULT_CHECKPOINTS))
+        from polargs_plugin.service.train import checkpoint_interval
+
+        every = checkpoint_interval(None, train_cfg.iterations)
     trainer.partial = (partial, _plain(cell.fingerprint()))
     print(f"training {cell.variant} ({describe(cell.variant)}), {train_cfg.iterations} iterations on {device}"
           + (f", resumed at iteration {trainer.iteration}" if resumed else ""), flush=True)
@@ -365,20 +382,29 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     figures["seconds"] = trainer.train_seconds()
     figures["loss"] = _final_loss(trainer.curve, train_cfg.log_every)  # the same whether resumed or not
     clock.lap("train")
-    _write_curves(tmp / CURVES_NAME, trainer.curve)
-    summary: dict[str, Any] = {
+    write_curves(tmp / CURVES_NAME, trainer.curve)
+    return trainer, train_cfg, polar_cfg, figures, {**init_info, "device": device}
+
+
+def _summary(cell: Cell, folder: Path, dataset, gt_mesh: Path, trainer, train_cfg, polar_cfg,
+             init_info: dict[str, Any]) -> dict[str, Any]:
+    """The run's summary before meshing (the settings; the figures come after the evaluation)."""
+    import torch
+
+    device = init_info.pop("device")
+    return {
         "format": RUN_FORMAT,
         "name": cell.name,
         "dataset": str(folder),  # what `polargs mesh` / `polargs eval` read
-        "dataset_format": read_info.get("format"),
-        "reader": reader,  # ... and how: load_dataset(dataset, **reader), as for `polargs train`
+        "dataset_format": dataset.format,
+        "reader": dataset.record(),  # ... and how: service.load_dataset(dataset, ReaderOptions(**reader))
         "scene": cell.scene.to_dict(),
         "variant": cell.variant,
         "variant_description": describe(cell.variant),
         "seed": cell.seed,
         "preset": cell.preset,
         "factor": DEFAULT_FACTOR if cell.factor is None and cell.preset == "cpu" else cell.factor,
-        "num_views": len(views),
+        "num_views": len(dataset.views),
         **init_info,
         "device": device,
         "device_name": torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else platform.processor() or None,
@@ -390,79 +416,83 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
         "train_config": train_cfg.to_dict(),
         "polar_config": None if polar_cfg is None else polar_cfg.to_dict(),
     }
-    _write_json(tmp / SUMMARY_NAME, summary)  # preliminary: lets the mesh / eval commands read the folder
 
-    report("mesh", 0, 1)
-    mesh_args = argparse.Namespace(
-        run_dir=tmp, preset=cell.mesh.get("preset", "synthetic"), voxel=cell.mesh.get("voxel"),
-        sdf_trunc=cell.mesh.get("sdf_trunc"), depth_trunc=cell.mesh.get("depth_trunc"), depth="median",
-        alpha_threshold=cell.mesh.get("alpha_threshold", 0.5), no_masks=False,
-        min_cluster=cell.mesh.get("min_cluster", 0.05), out=None,
-    )
-    mesh_cli.run(mesh_args)
-    canonical_mesh_order(tmp / mesh_cli.MESH_FILE)
-    clock.lap("mesh")
-    report("eval", 0, 1)
-    has_normals = any(v.normal_gt is not None for v in views)
-    # a scene folder is handed over as `polargs eval --gt FOLDER` takes it: with its whole-scene
-    # mesh.ply beside gt_mesh.ply as the occluder; a GT given as NAME=PATH:GT_MESH has none
-    eval_gt = gt_mesh if cell.scene.gt_mesh else gt_mesh.parent
-    eval_args = argparse.Namespace(
-        target=tmp, gt=eval_gt, normals=has_normals, num_samples=int(cell.eval.get("num_samples", 1_000_000)),
-        seed=0, max_dist=None, fscore_threshold=None, units=cell.eval.get("units", "scene units"),
-        cull=bool(cell.eval.get("cull", True)), cull_dilation=EVAL_CULL_DILATION, out=None,
-    )
-    eval_cli.run(eval_args)
-    metrics = json.loads((tmp / "metrics.json").read_text())
-    clock.lap("eval")
-    report("pictures", 0, 1)
-    _report_data(trainer, tmp, *eval_cli.gt_meshes(eval_gt), eval_args.cull)
-    clock.lap("pictures")
 
+def _trained_model(trainer):
+    """The trained Gaussians as a run folder's checkpoint holds them (what `polargs mesh` renders)."""
+    from polargs_plugin.backends.reference.model import GaussianModel
+
+    return GaussianModel.from_checkpoint(trainer.model.checkpoint())
+
+
+def _mesh(cell: Cell, trainer, views: list, tmp: Path) -> None:
+    """tsdf_mesh.ply (and its settings) in canonical order, as `polargs mesh` with the cell's settings."""
+    from polargs_plugin.mesh import canonical_mesh_order
+    from polargs_plugin.service.mesh import MeshSettings, fuse_model, write_mesh_result
+
+    settings = MeshSettings(preset=cell.mesh.get("preset", "synthetic"), voxel=cell.mesh.get("voxel"),
+                            sdf_trunc=cell.mesh.get("sdf_trunc"), depth_trunc=cell.mesh.get("depth_trunc"),
+                            alpha_threshold=cell.mesh.get("alpha_threshold", 0.5),
+                            min_cluster=cell.mesh.get("min_cluster", 0.05))
+    result = fuse_model(_trained_model(trainer), views, settings, source=str(tmp))
+    write_mesh_result(result, tmp / MESH_NAME)
+    canonical_mesh_order(tmp / MESH_NAME)
+
+
+def _evaluate(cell: Cell, trainer, dataset, summary: dict[str, Any], tmp: Path, eval_gt: Path) -> tuple[dict[str, Any], bool]:
+    """metrics.json, as `polargs eval --gt` (and ``--normals`` where the views have GT normals); (metrics, culled)."""
+    from polargs_plugin.service.evaluation import EvalSettings, evaluate, write_metrics
+    from polargs_plugin.service.runs import Run
+
+    cull = bool(cell.eval.get("cull", True))
+    settings = EvalSettings(gt=eval_gt, normals=any(v.normal_gt is not None for v in dataset.views),
+                            num_samples=int(cell.eval.get("num_samples", 1_000_000)),
+                            units=cell.eval.get("units", "scene units"), cull=cull, cull_dilation=EVAL_CULL_DILATION)
+    metrics = evaluate(tmp, settings, run=Run(tmp, _trained_model(trainer), dataset, summary))
+    write_metrics(metrics, tmp / METRICS_NAME)
+    return metrics, cull
+
+
+def _figures(metrics: dict[str, Any], figures: dict[str, Any], curve: list[dict[str, float]]) -> dict[str, Any]:
+    """The summary's ``figures``: the evaluation's and the training's."""
     chamfer = metrics.get("chamfer") or {}
-    summary.update(
-        git=_git(),
-        host=platform.node(),
-        versions={"python": platform.python_version(), "torch": torch.__version__},
-        started=started,
-        finished=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        timings=clock.total(),
-        figures={
-            "chamfer": chamfer.get("chamfer"),
-            "accuracy": chamfer.get("accuracy"),
-            "completeness": chamfer.get("completeness"),
-            # the same means without the outlier cap, the fractions the cap dropped and the median
-            # signed distance (outside positive): a mesh inside the GT shows there, not in the capped means
-            "chamfer_uncapped": chamfer.get("chamfer_uncapped"),
-            "accuracy_uncapped": chamfer.get("accuracy_uncapped"),
-            "completeness_uncapped": chamfer.get("completeness_uncapped"),
-            "accuracy_outliers": chamfer.get("accuracy_outliers"),
-            "completeness_outliers": chamfer.get("completeness_outliers"),
-            "signed_distance_median": chamfer.get("signed_distance_median"),
-            "fscore": chamfer.get("fscore"),
-            "precision": chamfer.get("precision"),
-            "recall": chamfer.get("recall"),
-            "normal_mae_deg": metrics.get("normal_mae_deg"),
-            "psnr": figures["psnr"],
-            "loss": figures["loss"],
-            "iterations": figures["iterations"],
-            "num_gaussians": figures["num_gaussians"],
-            "appended_total": int(sum(row["appended"] for row in trainer.curve)),
-            "train_seconds": figures["seconds"],
-            "units": chamfer.get("units", "scene units"),
-        },
-        eval={"culled": bool(eval_args.cull), "num_samples": eval_args.num_samples,
-              "max_dist": chamfer.get("max_dist"), "fscore_threshold": chamfer.get("fscore_threshold"),
-              "normal_region": metrics.get("normal_region")},
-        files=sorted(p.name for p in tmp.iterdir() if p.name != SUMMARY_NAME) + [SUMMARY_NAME],
-    )
-    _write_json(tmp / SUMMARY_NAME, summary)
-    print(f"finished {cell.name}: {json.dumps(summary['figures'])}", flush=True)
-    return summary
+    return {
+        "chamfer": chamfer.get("chamfer"),
+        "accuracy": chamfer.get("accuracy"),
+        "completeness": chamfer.get("completeness"),
+        # the same means without the outlier cap, the fractions the cap dropped and the median
+        # signed distance (outside positive): a mesh inside the GT shows there, not in the capped means
+        "chamfer_uncapped": chamfer.get("chamfer_uncapped"),
+        "accuracy_uncapped": chamfer.get("accuracy_uncapped"),
+        "completeness_uncapped": chamfer.get("completeness_uncapped"),
+        "accuracy_outliers": chamfer.get("accuracy_outliers"),
+        "completeness_outliers": chamfer.get("completeness_outliers"),
+        "signed_distance_median": chamfer.get("signed_distance_median"),
+        "fscore": chamfer.get("fscore"),
+        "precision": chamfer.get("precision"),
+        "recall": chamfer.get("recall"),
+        "normal_mae_deg": metrics.get("normal_mae_deg"),
+        "psnr": figures["psnr"],
+        "loss": figures["loss"],
+        "iterations": figures["iterations"],
+        "num_gaussians": figures["num_gaussians"],
+        "appended_total": int(sum(row["appended"] for row in curve)),
+        "train_seconds": figures["seconds"],
+        "units": chamfer.get("units", "scene units"),
+    }
 
 
-def _make_trainer(views, config, hooks, init_points, report: Progress):
-    """A reference Trainer that records every iteration's logs (the curves) and reports progress."""
+def _eval_record(metrics: dict[str, Any], cull: bool, num_samples: int) -> dict[str, Any]:
+    chamfer = metrics.get("chamfer") or {}
+    return {"culled": cull, "num_samples": num_samples, "max_dist": chamfer.get("max_dist"),
+            "fscore_threshold": chamfer.get("fscore_threshold"), "normal_region": metrics.get("normal_region")}
+
+
+@functools.lru_cache(maxsize=1)
+def _recording_trainer_class() -> type:
+    """The reference Trainer that records every iteration's logs (the curves) and reports
+    progress; defined on first use (the trainer imports torch, which a pool worker must not load
+    before it sets its thread counts)."""
     from polargs_plugin.backends.reference.trainer import Trainer
 
     class RecordingTrainer(Trainer):
@@ -473,6 +503,7 @@ def _make_trainer(views, config, hooks, init_points, report: Progress):
         partial: tuple[Path, dict] | None = None
         seconds_before: float = 0.0
         resumes: list[int]
+        report: Progress
         _started: float | None = None
 
         def train(self, *args, **kwargs):
@@ -486,9 +517,9 @@ def _make_trainer(views, config, hooks, init_points, report: Progress):
             if self.partial is not None:
                 folder, fingerprint = self.partial
                 # state first: a kill between the two leaves a state one checkpoint ahead, cut back on load
-                _write_json(folder / PARTIAL_STATE, {"fingerprint": fingerprint, "iteration": self.iteration,
-                                                     "curve": self.curve, "train_seconds": self.train_seconds(),
-                                                     "resumed_from": self.resumes})
+                write_json(folder / PARTIAL_STATE, {"fingerprint": fingerprint, "iteration": self.iteration,
+                                                    "curve": self.curve, "train_seconds": self.train_seconds(),
+                                                    "resumed_from": self.resumes})
             return super().save_checkpoint(path)
 
         def step(self) -> dict[str, float]:
@@ -499,28 +530,32 @@ def _make_trainer(views, config, hooks, init_points, report: Progress):
                 "num_gaussians": int(logs["num"]),
                 "appended": int(logs.get("appended", 0)),
             })
-            report("train", self.iteration, self.config.iterations)
+            self.report("train", self.iteration, self.config.iterations)
             if self.iteration % 50 == 0 or self.iteration == self.config.iterations:
                 print(f"iteration {self.iteration}: loss {logs['loss']:.4f}, PSNR {logs['psnr']:.2f}, "
                       f"{int(logs['num'])} Gaussians", flush=True)
             return logs
 
-    trainer = RecordingTrainer(views, config, hooks=hooks, init_points=init_points)
-    trainer.curve = []
-    trainer.resumes = []
+    return RecordingTrainer
+
+
+def _make_trainer(views, config, polar_cfg, init_points, report: Progress):
+    """A recording trainer (see :func:`_recording_trainer_class`) with the hooks of ``polar_cfg``."""
+    from polargs_plugin.service.train import build_trainer
+
+    trainer = build_trainer(views, config, polar_cfg, init_points, trainer_class=_recording_trainer_class())
+    trainer.curve, trainer.resumes, trainer.report = [], [], report
     return trainer
 
 
 def _plain(data: Any) -> Any:
     """``data`` as it reads back from JSON."""
-    return json.loads(json.dumps(_json_safe(data)))
+    return json.loads(json.dumps(json_safe(data)))
 
 
 def _resume(cell: Cell, trainer, partial: Path) -> bool:
     """Load ``partial``'s checkpoint into ``trainer`` when it is this cell's (else remove it and
     return False). Raises when the checkpoint is this cell's but cannot be loaded."""
-    from polargs_plugin.cli.train import CHECKPOINT_NAME
-
     checkpoint, state_path = partial / CHECKPOINT_NAME, partial / PARTIAL_STATE
     if not checkpoint.is_file():
         return False
@@ -541,39 +576,6 @@ def _resume(cell: Cell, trainer, partial: Path) -> bool:
     trainer.resumes = [int(i) for i in state.get("resumed_from") or []] + [trainer.iteration]
     print(f"resume: loaded {checkpoint} at iteration {trainer.iteration}", flush=True)
     return True
-
-
-def canonical_mesh_order(path: Path) -> None:
-    """Rewrite a mesh with its vertices sorted by position and its triangles sorted (orientation kept).
-
-    open3d's TSDF hash map lists the same surface in a different order from one run to the next,
-    and the evaluation's area-uniform sampling (fixed seed) then draws other points: the Chamfer
-    figures of two identical trainings would differ in the third digit. In a canonical order the
-    same model gives the same figures, which is what a resumed run is checked against.
-    """
-    import numpy as np
-    import open3d as o3d
-
-    from polargs_plugin.mesh import read_mesh, write_mesh
-
-    mesh = read_mesh(path)
-    vertices = np.asarray(mesh.vertices)
-    triangles = np.asarray(mesh.triangles)
-    if len(vertices) == 0:
-        return
-    order = np.lexsort(vertices.T[::-1])  # x, then y, then z
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    tri = rank[triangles]
-    shift = np.argmin(tri, axis=1)  # rotate each triangle to start at its smallest index (same orientation)
-    tri = np.take_along_axis(tri, (shift[:, None] + np.arange(3)) % 3, axis=1)
-    tri = tri[np.lexsort(tri.T[::-1])]
-    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices[order]), o3d.utility.Vector3iVector(tri))
-    if mesh.has_vertex_normals():
-        out.compute_vertex_normals()  # summed over triangles: recomputed in the canonical order
-    if mesh.has_vertex_colors():
-        out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
-    write_mesh(path, out)
 
 
 def _final_loss(curve: list[dict[str, float]], log_every: int) -> float | None:
@@ -628,131 +630,6 @@ def _initial_points(cell: Cell, views, config):
     print(f"init: {note}; falling back to the visual hull", flush=True)
     info.update(init_used="hull", init_note=note + "; fell back to the visual hull", init_points=config.num_init_points)
     return None, info
-
-
-def _write_json(path: Path, data: Any) -> None:
-    with atomic_write(path) as handle:
-        json.dump(_json_safe(data), handle, indent=2, allow_nan=False)
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def _write_curves(path: Path, curve: list[dict[str, float]]) -> None:
-    """curves.csv: iteration, loss, psnr, num_gaussians, appended, appended_total, then the hooks' terms."""
-    fixed = ["iteration", "loss", "psnr", "num_gaussians", "appended", "appended_total"]
-    extra = sorted({k for row in curve for k in row} - set(fixed))
-    total = 0
-    with atomic_write(path) as handle:
-        writer = csv.writer(handle)
-        writer.writerow(fixed + extra)
-        for row in curve:
-            total += row["appended"]
-            values = [row["iteration"], row["loss"], row["psnr"], row["num_gaussians"], row["appended"], total]
-            writer.writerow([_fmt(v) for v in values] + [_fmt(row.get(k, "")) for k in extra])
-
-
-def _fmt(value: Any) -> Any:
-    return f"{value:.6g}" if isinstance(value, float) else value
-
-
-REPORT_VIEW_COUNT = 2
-
-
-def report_view_indices(num_views: int) -> list[int]:
-    """The two views shown side by side in the report: the first and the middle one."""
-    return sorted({0, num_views // 2})[:REPORT_VIEW_COUNT]
-
-
-def _report_data(trainer, tmp: Path, gt_mesh: Path, occluder: Path | None, cull: bool) -> None:
-    """views.npz, pc_maps.npz (PC variants) and mesh_error.npz for the report. views.npz: the report
-    views' renders, targets, cameras, GT maps and ``gt_silhouette`` (1, H, W), the GT mesh's
-    silhouette less what the whole-scene ``occluder`` mesh (or None) hides; the mesh error: exact
-    signed distance of the predicted mesh's vertices to the GT mesh, outside positive; with
-    ``cull``, which vertices lie in the region the evaluation measured."""
-    import numpy as np
-    import torch
-
-    from polargs_plugin.io import atomic_path
-    from polargs_plugin.mesh import read_mesh
-    from polargs_plugin.metrics import mesh_silhouettes
-
-    indices = report_view_indices(len(trainer.views))
-    views = [trainer.views[i] for i in indices]
-    # where the GT object itself is seen: the depth-error picture leaves a support plane out
-    occluder_mesh = read_mesh(occluder) if occluder is not None else None
-    silhouettes = mesh_silhouettes(read_mesh(gt_mesh), views, occluder_mesh)
-    data: dict[str, np.ndarray] = {}
-    with torch.no_grad():
-        for i, (index, view) in enumerate(zip(indices, views)):
-            data[f"{i}/gt_silhouette"] = silhouettes[i][None]
-            out = trainer.model.render(view, background=trainer.background, backend=trainer.config.backend)
-            depth = out.median_depth if out.median_depth is not None else out.depth
-            fields = {
-                "color": out.color.clamp(0, 1), "normal": out.normal, "depth": depth, "alpha": out.alpha,
-                "target": trainer.targets[index],
-                "K": view.K, "world_to_camera": view.world_to_camera,
-            }
-            for key, value in (("mask", view.mask), ("normal_gt", view.normal_gt), ("depth_gt", view.depth_gt)):
-                if value is not None:
-                    fields[key] = value
-            for key, value in fields.items():
-                data[f"{i}/{key}"] = value.detach().cpu().numpy()
-            data[f"{i}/name"] = np.array(view.name)
-    with atomic_path(tmp / "views.npz") as path:
-        np.savez_compressed(path, **data)
-
-    hooks = trainer.hooks
-    if hooks is not None and hooks.config.correction.enabled and getattr(hooks, "maps", None):
-        maps: dict[str, np.ndarray] = {}
-        for i, view in enumerate(views):
-            m = hooks.maps.get(view.name)
-            if m is None:
-                continue
-            for key in ("aolp", "dolp", "intensity", "specular_mask", "overexposed_mask", "i_diff", "i_chro"):
-                value = getattr(m, key)
-                if value is not None:
-                    maps[f"{i}/{key}"] = value.detach().cpu().numpy()
-        if maps:
-            with atomic_path(tmp / "pc_maps.npz") as path:
-                np.savez_compressed(path, **maps)
-
-    error = mesh_error(tmp / "tsdf_mesh.ply", gt_mesh, trainer.views if cull else None, occluder_mesh)
-    with atomic_path(tmp / "mesh_error.npz") as path:
-        np.savez_compressed(path, **error)
-
-
-def mesh_error(
-    mesh: Path, gt_mesh: Path, views: list | None = None, occluder: MeshLike | None = None
-) -> dict[str, Any]:
-    """mesh_error.npz's arrays: ``vertices`` (V, 3) float32 of the mesh file ``mesh`` and their
-    ``signed_distance`` (V,) float32 to the GT mesh (exact closest point, outside positive:
-    :func:`polargs_plugin.metrics.signed_distances`); with ``views``, ``evaluated`` (V,) bool: the
-    vertices in the evaluation's object region (:func:`polargs_plugin.metrics.in_object_region`
-    with ``EVAL_CULL_DILATION`` and the whole-scene ``occluder`` mesh or None: the predicted points
-    ``polargs eval`` keeps), so that the picture does not colour the support (a floor) that the
-    figures leave out."""
-    import numpy as np
-
-    from polargs_plugin.mesh import read_mesh
-    from polargs_plugin.metrics import in_object_region, signed_distances
-
-    vertices = np.asarray(read_mesh(mesh).vertices, dtype=np.float64)
-    gt = read_mesh(gt_mesh)
-    # open3d's BVH, a few seconds; the nearest of 400k GT samples (cKDTree) that this once was
-    # took minutes for a mesh inside the GT, far from every sample (polargs_plugin.nearest)
-    distance = signed_distances(vertices, gt)
-    error = {"vertices": vertices.astype(np.float32), "signed_distance": distance.astype(np.float32)}
-    if views is not None:
-        error["evaluated"] = in_object_region(vertices, gt, views, EVAL_CULL_DILATION, occluder)
-    return error
 
 
 def _git() -> dict[str, Any]:

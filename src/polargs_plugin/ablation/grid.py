@@ -25,10 +25,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
-from polargs_plugin.ablation.cell import Cell, CellFailed, is_done, run_cell
-from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene
+from polargs_plugin.ablation.cell import INITS, Cell, CellFailed, is_done, run_cell
+from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, parse_scene
+from polargs_plugin.io import PolarInputError
+from polargs_plugin.service.data import ReaderOptions
 
-__all__ = ["expand", "run_grid", "GridResult", "default_jobs", "write_grid_file", "GRID_FILE"]
+__all__ = ["GridOptions", "build_cells", "expand", "run_grid", "GridResult", "default_jobs", "write_grid_file", "GRID_FILE"]
 
 GRID_FILE = "grid.json"
 
@@ -40,6 +42,114 @@ def expand(scenes: Sequence[SceneSpec], variants: Sequence[str], seeds: Sequence
     out = str(Path(out).resolve())
     return [Cell(scene=scene, variant=variant, seed=int(seed), out=out, init=init, **common)
             for scene in scenes for seed in seeds for init in inits for variant in variants]
+
+
+@dataclass(frozen=True)
+class GridOptions:
+    """What every cell of a grid shares, as ``polargs ablate`` takes it (docs/ablation.md).
+
+    Attributes:
+        out: the grid folder.
+        scene_cache: where bundled scenes are generated (None: ``out/scenes``).
+        views: views of a generated bundled scene (default 24).
+        size: (width, height) of a generated bundled scene (default 128x128).
+        inits: initial points, each a separate cell: ``hull``, ``sfm``, ``random``.
+        preset: ``cpu`` (the vanilla schedule x ``factor``) or ``paper``.
+        factor: the cpu preset's schedule factor (None: 1/6, 5000 iterations).
+        iters: training iterations (None: the preset's).
+        train_overrides / polar_overrides: nested partial dicts of TrainConfig / PolarConfig fields.
+        mesh_preset: TSDF settings (``synthetic`` or ``paper``).
+        voxel: TSDF voxel (None: the preset's; bundled scenes scale it to 1 / min(W, H)).
+        eval_samples: points sampled per mesh for Chamfer.
+        cull: cull predicted points to the object region before Chamfer.
+        threads: torch threads of each run.
+        device: torch device (None: cuda if available, else cpu).
+        checkpoint_every: iterations between the periodic checkpoints a run resumes from (None: 10 per run).
+        reader: reader options of dataset-folder scenes (an error with bundled scenes).
+    """
+
+    out: Path
+    scene_cache: Path | None = None
+    views: int = 24
+    size: tuple[int, int] = (128, 128)
+    inits: tuple[str, ...] = ("hull",)
+    preset: str = "cpu"
+    factor: float | None = None
+    iters: int | None = None
+    train_overrides: dict[str, Any] = field(default_factory=dict)
+    polar_overrides: dict[str, Any] = field(default_factory=dict)
+    mesh_preset: str = "synthetic"
+    voxel: float | None = None
+    eval_samples: int = 1_000_000
+    cull: bool = True
+    threads: int = 1
+    device: str | None = None
+    checkpoint_every: int | None = None
+    reader: ReaderOptions = field(default_factory=ReaderOptions)
+
+
+# How the command line spells each reader option, for the refusal with bundled scenes.
+_READER_FLAGS = {"pattern": "--pattern", "bit_depth": "--bit-depth", "sfm": "--sfm", "check_pattern": "--no-pattern-check"}
+
+
+def _scenes(options: GridOptions, scene_texts: Sequence[str], warn: Callable[[str], None]) -> list[SceneSpec]:
+    cache = options.scene_cache or Path(options.out) / "scenes"
+    width, height = options.size
+    scenes = []
+    for text in scene_texts:
+        try:
+            scenes.append(parse_scene(text, cache, options.views, width, height))
+        except ValueError as err:
+            raise PolarInputError("--scenes", str(err)) from None
+    names = [s.name for s in scenes]
+    if len(set(names)) != len(names):
+        raise PolarInputError("--scenes", f"the same scene name twice ({', '.join(names)})")
+    for scene in scenes:
+        if scene.bundled is None and not Path(scene.path).exists():
+            warn(f"{scene.path}: dataset not found; the runs of scene '{scene.name}' will fail")
+    return scenes
+
+
+def _mesh_settings(options: GridOptions, scene: SceneSpec) -> dict[str, Any]:
+    mesh: dict[str, Any] = {"preset": options.mesh_preset}
+    if options.voxel is not None:
+        mesh["voxel"] = options.voxel
+    elif scene.bundled is not None and options.mesh_preset == "synthetic" and min(scene.width, scene.height) != 128:
+        mesh["voxel"] = 1.0 / min(scene.width, scene.height)  # the preset's voxel (1/128 at 128 px) per pixel size
+    return mesh
+
+
+def build_cells(options: GridOptions, scene_texts: Sequence[str], variants: Sequence[str], seeds: Sequence[int],
+                warn: Callable[[str], None] = lambda line: None) -> list[Cell]:
+    """The cells of a grid (order: scene, seed, init, variant), every setting checked first.
+
+    Raises:
+        PolarInputError: naming the option (``--scenes``, ``--init``, ``--train-set``, ...).
+    """
+    scenes = _scenes(options, scene_texts, warn)
+    reader = options.reader.to_dict()
+    flags = [_READER_FLAGS[k] for k in reader if k in _READER_FLAGS]
+    bundled = [s.name for s in scenes if s.bundled is not None]
+    if flags and bundled:  # as `polargs train` does for synthetic:NAME (--format is ignored there, as in train)
+        raise PolarInputError(", ".join(flags), f"only for dataset folders, not for a bundled scene ({', '.join(bundled)}); "
+                              "run bundled scenes and dataset folders as separate commands (the same --out is fine)")
+    bad = [i for i in options.inits if i not in INITS]
+    if bad:
+        raise PolarInputError("--init", f"unknown {', '.join(bad)} (known: {', '.join(INITS)})")
+    train_overrides = dict(options.train_overrides)
+    if options.iters is not None:
+        train_overrides["iterations"] = options.iters
+    cells = []
+    for scene in scenes:
+        cells += expand([scene], variants, seeds, options.out, options.inits, preset=options.preset,
+                        factor=options.factor, train_overrides=train_overrides,
+                        polar_overrides=dict(options.polar_overrides), mesh=_mesh_settings(options, scene),
+                        eval={"num_samples": options.eval_samples, "cull": options.cull},
+                        threads=options.threads, device=options.device, checkpoint_every=options.checkpoint_every,
+                        reader={} if scene.bundled is not None else dict(reader))
+    for variant in dict.fromkeys(variants):  # overrides are checked before anything runs
+        next(c for c in cells if c.variant == variant).configs()
+    return cells
 
 
 def default_jobs(threads_per_run: int = 1, gpus: Sequence[str] = ()) -> int:
@@ -316,11 +426,11 @@ def generate_scenes(cells: Sequence[Cell], stream: TextIO | None = None, progres
     sfm = {c.scene.path: c.reader for c in cells if c.scene.bundled is None and c.reader.get("sfm")}
     for path, reader in sfm.items():
         if Path(path).is_dir() and not (Path(path) / "sparse" / "0").is_dir():
-            from polargs_plugin.cli.train import load_dataset
+            from polargs_plugin.service.data import ReaderOptions, load_dataset
 
             print(f"SfM: {path} has no COLMAP model; running SfM once for its cells", file=stream, flush=True)
             with contextlib.suppress(Exception):
-                load_dataset(path, **reader)
+                load_dataset(path, ReaderOptions(**reader))
 
 
 def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridResult, gpus: Sequence[str] = ()) -> None:

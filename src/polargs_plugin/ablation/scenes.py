@@ -15,17 +15,15 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 from polargs_plugin.io import PolarInputError
+from polargs_plugin.service.evaluation import GT_MESH_NAMES
 
 __all__ = ["SceneSpec", "GT_MESH_NAMES", "parse_scene", "ensure_scene", "gt_mesh_path", "bundled_names"]
 
-#: Files looked up, in order, next to a dataset when no GT mesh is given.
-GT_MESH_NAMES: tuple[str, ...] = ("gt_mesh.ply", "mesh.ply")
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 
@@ -95,31 +93,18 @@ def parse_scene(text: str, cache_dir: str | os.PathLike, views: int = 24, width:
 def ensure_scene(spec: SceneSpec, progress: bool = False) -> Path:
     """The scene's dataset folder; a bundled scene is generated first if its folder is missing.
 
-    Generation writes ``<folder>.tmp-<pid>`` and renames it: concurrent callers (parallel cells,
-    cluster jobs) never see a half-written scene; the first rename wins.
+    Generation writes a temporary folder beside it and renames it: concurrent callers (parallel
+    cells, cluster jobs) never see a half-written scene; the first rename wins.
     """
     folder = Path(spec.path)
     if spec.bundled is None or folder.is_dir():
         return folder
-    from polargs_plugin.data.scene_format import write_scene
-    from polargs_plugin.data.synthetic import generate_scene
+    from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder
 
     if spec.bundled not in bundled_names():
         raise PolarInputError(folder, f"unknown bundled scene '{spec.bundled}' (known: {', '.join(bundled_names())})")
-    tmp = folder.with_name(f".{folder.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        scene = generate_scene(spec.bundled, num_views=spec.views, width=spec.width, height=spec.height,
-                               seed=spec.seed, progress=progress)
-        write_scene(scene, tmp)
-        try:
-            os.rename(tmp, folder)
-        except OSError:
-            if not folder.is_dir():
-                raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return folder
+    request = SceneRequest(spec.bundled, views=spec.views, width=spec.width, height=spec.height, seed=spec.seed)
+    return generate_scene_folder(request, folder, progress=progress).folder
 
 
 def gt_mesh_path(spec: SceneSpec) -> Path:

@@ -64,30 +64,27 @@ def _check(variant: str, preset: str) -> None:
 
 def train_config(preset: str = "cpu", factor: float | None = None, seed: int = 0, overrides: dict[str, Any] | None = None):
     """The :class:`TrainConfig` of every variant: the preset, the seed, then ``overrides``
-    (a nested partial dict, e.g. ``{"iterations": 100, "density": {"max_gaussians": 800}}``)."""
-    from polargs_plugin.backends.reference.trainer import TrainConfig
+    (a nested partial dict, e.g. ``{"iterations": 100, "density": {"max_gaussians": 800}}``;
+    checked, errors name ``--train-set``)."""
+    from polargs_plugin.service.configs import train_config as build
 
     _check("base", preset)
-    config = TrainConfig.cpu(DEFAULT_FACTOR if factor is None else factor) if preset == "cpu" else TrainConfig.paper()
-    data = config.to_dict()
-    data["seed"] = int(seed)
-    _merge(data, overrides or {}, "train")
-    return TrainConfig.from_dict(data)
+    schedule_factor = (DEFAULT_FACTOR if factor is None else factor) if preset == "cpu" else None
+    return build(preset, schedule_factor, {"seed": int(seed), **(overrides or {})}, "--train-set")
 
 
 def polar_config(variant: str, preset: str = "cpu", factor: float | None = None, seed: int = 0,
                  overrides: dict[str, Any] | None = None):
-    """The :class:`PolarConfig` of ``variant`` (None for ``base``), then ``overrides`` applied
-    (``PolarConfig.update``: nested partial dict; unknown keys raise KeyError)."""
-    from polargs_plugin.config import PolarConfig, polar_schedule_factor
+    """The :class:`PolarConfig` of ``variant`` (None for ``base``): the paper's synthetic values
+    with the preset's schedules, the variant's switches and the PatchMatch seed, then
+    ``overrides`` (nested partial dict; checked, errors name ``--polar-set``)."""
+    from polargs_plugin.service.configs import apply_overrides
+    from polargs_plugin.service.configs import polar_config as build
 
     _check(variant, preset)
     if variant == "base":
         return None
-    if preset == "cpu":
-        config = PolarConfig.cpu_demo(polar_schedule_factor(DEFAULT_FACTOR if factor is None else factor))
-    else:
-        config = PolarConfig.synthetic()
+    config = build("synthetic", (DEFAULT_FACTOR if factor is None else factor) if preset == "cpu" else None)
     pc, dense, normal, regularisers = _SWITCHES[variant]
     config.correction.enabled = pc
     config.losses.use_ref = pc
@@ -96,9 +93,7 @@ def polar_config(variant: str, preset: str = "cpu", factor: float | None = None,
     config.losses.use_depth_normal = regularisers
     config.losses.use_scale = regularisers
     config.densify.patchmatch.seed = int(seed)
-    if overrides:
-        config.update(overrides)
-    return config
+    return apply_overrides(config, overrides, "--polar-set") if overrides else config
 
 
 def variant_configs(variant: str, preset: str = "cpu", factor: float | None = None, seed: int = 0,
@@ -119,16 +114,6 @@ def variant_configs(variant: str, preset: str = "cpu", factor: float | None = No
     if polar is not None and "ssim_weight" not in (polar_overrides or {}).get("losses", {}):
         polar.losses.ssim_weight = train.ssim_weight
     return train, polar
-
-
-def _merge(data: dict[str, Any], overrides: dict[str, Any], where: str) -> None:
-    for key, value in overrides.items():
-        if key not in data:
-            raise KeyError(f"{where}: unknown setting '{key}' (known: {sorted(data)})")
-        if isinstance(data[key], dict) and isinstance(value, dict):
-            _merge(data[key], value, f"{where}.{key}")
-        else:
-            data[key] = value
 
 
 def describe(variant: str) -> str:

@@ -94,7 +94,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     args._argv = argv  # the command line as given (for "resume with: ..." messages)
-    return int(args.func(args) or 0)
+    from polargs_plugin.io import PolarInputError
+
+    try:
+        return int(args.func(args) or 0)
+    except PolarInputError as err:  # an ordinary error: one line, no traceback (docs/cli.md)
+        from polargs_plugin.cli.common import print_error
+
+        return print_error(str(err))
 
 
 if __name__ == "__main__":

@@ -9,14 +9,18 @@ import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.ablation.variants import DESCRIPTIONS, PRESETS, VARIANTS
 from polargs_plugin.cli.argtypes import image_size, non_negative_int, positive_float, positive_int
+from polargs_plugin.cli.common import add_reader_options, reader_options
+from polargs_plugin.io import PolarInputError
+
+if TYPE_CHECKING:
+    from polargs_plugin.ablation.grid import GridOptions
 
 CLUSTERS = ("auto", "slurm", "local", "debug")
 
-_INITS = ("hull", "sfm", "random")
 
 _DESCRIPTION = """\
 Run the PolarGS ablation: every scene x variant x seed is one training of the reference backend,
@@ -93,8 +97,6 @@ def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "1/6:
                    help="iterations between the training checkpoints an interrupted run resumes from "
                    "(default: 10 per run; 0: none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one line per finished run is still printed)")
-    from polargs_plugin.cli.train import add_reader_options
-
     add_reader_options(p)  # --format, --pattern, --no-pattern-check, --bit-depth, --sfm (dataset-folder scenes only)
 
 
@@ -144,10 +146,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 # --------------------------------------------------------------------------------------- helpers
-class UsageError(Exception):
-    """A bad option value; printed as ``error: ...`` with exit status 2."""
-
-
 def parse_assignments(items: list[str], option: str) -> dict[str, Any]:
     """``["density.max_gaussians=800", "iterations=90"]`` -> nested dict; values parsed as JSON
     when they are JSON (numbers, true/false/null, lists), else kept as strings."""
@@ -155,7 +153,7 @@ def parse_assignments(items: list[str], option: str) -> dict[str, Any]:
     for item in items:
         key, sep, text = item.partition("=")
         if not sep or not key.strip():
-            raise UsageError(f"{option}: expected KEY=VALUE, got {item!r}")
+            raise PolarInputError(option, f"expected KEY=VALUE, got {item!r}")
         try:
             value = json.loads(text)
         except ValueError:
@@ -165,7 +163,7 @@ def parse_assignments(items: list[str], option: str) -> dict[str, Any]:
         for part in parts[:-1]:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
-                raise UsageError(f"{option}: {key} conflicts with an earlier assignment")
+                raise PolarInputError(option, f"{key} conflicts with an earlier assignment")
         node[parts[-1]] = value
     return out
 
@@ -173,80 +171,33 @@ def parse_assignments(items: list[str], option: str) -> dict[str, Any]:
 def _split(text: str, what: str) -> list[str]:
     items = [t.strip() for t in text.split(",") if t.strip()]
     if not items:
-        raise UsageError(f"{what}: nothing given")
+        raise PolarInputError(what, "nothing given")
     return items
 
 
-_READER_FLAGS = {"pattern": "--pattern", "bit_depth": "--bit-depth", "sfm": "--sfm", "check_pattern": "--no-pattern-check"}
+def grid_options(args: argparse.Namespace) -> "GridOptions":
+    """The :class:`~polargs_plugin.ablation.grid.GridOptions` of parsed ``ablate`` / ``demo`` options."""
+    from polargs_plugin.ablation.grid import GridOptions
 
-
-def cell_reader(args: argparse.Namespace) -> dict[str, Any]:
-    """The reader options of the command line as ``Cell.reader`` (load_dataset's keyword arguments;
-    only those given)."""
-    from polargs_plugin.cli.train import reader_kwargs
-
-    reader: dict[str, Any] = {}
-    fmt = getattr(args, "format", "auto") or "auto"
-    if fmt != "auto":
-        reader["fmt"] = fmt
-    reader.update(reader_kwargs(args))
-    return reader
+    return GridOptions(
+        out=args.out, scene_cache=args.scene_cache, views=args.views, size=tuple(args.size),
+        inits=tuple(_split(args.init, "--init")), preset=args.preset, factor=args.factor, iters=args.iters,
+        train_overrides=parse_assignments(args.train_set, "--train-set"),
+        polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
+        mesh_preset=args.mesh_preset, voxel=args.voxel, eval_samples=args.eval_samples, cull=not args.no_cull,
+        threads=args.threads_per_run, device=args.device, checkpoint_every=getattr(args, "checkpoint_every", None),
+        reader=reader_options(args),
+    )
 
 
 def build_cells(args: argparse.Namespace, scene_texts: list[str], variants: list[str], seeds: list[int]):
-    """The grid's cells from the parsed options (raises UsageError for bad values)."""
-    from polargs_plugin.ablation.grid import expand
-    from polargs_plugin.ablation.scenes import parse_scene
+    """The grid's cells from the parsed options (raises PolarInputError naming the option)."""
+    from polargs_plugin.ablation.grid import build_cells as build
 
-    out: Path = args.out
-    cache = args.scene_cache or out / "scenes"
-    width, height = args.size
-    scenes = []
-    for text in scene_texts:
-        try:
-            scenes.append(parse_scene(text, cache, args.views, width, height))
-        except ValueError as err:
-            raise UsageError(f"--scenes: {err}") from None
-    names = [s.name for s in scenes]
-    if len(set(names)) != len(names):
-        raise UsageError(f"--scenes: the same scene name twice ({', '.join(names)})")
-    for scene in scenes:
-        if scene.bundled is None and not Path(scene.path).exists():
-            print(f"warning: {scene.path}: dataset not found; the runs of scene '{scene.name}' will fail", file=sys.stderr)
-    reader = cell_reader(args)
-    flags = [_READER_FLAGS[k] for k in reader if k in _READER_FLAGS]
-    bundled = [s.name for s in scenes if s.bundled is not None]
-    if flags and bundled:  # as `polargs train` does for synthetic:NAME (--format is ignored there, as in train)
-        raise UsageError(f"{', '.join(flags)} apply to dataset folders, not to a bundled scene ({', '.join(bundled)}); "
-                         "run bundled scenes and dataset folders as separate commands (the same --out is fine)")
-    inits = _split(args.init, "--init")
-    bad = [i for i in inits if i not in _INITS]
-    if bad:
-        raise UsageError(f"--init: unknown {', '.join(bad)} (known: {', '.join(_INITS)})")
-    train_overrides = parse_assignments(args.train_set, "--train-set")
-    if args.iters is not None:
-        train_overrides["iterations"] = args.iters
-    polar_overrides = parse_assignments(args.polar_set, "--polar-set")
-    cells = []
-    for scene in scenes:
-        mesh: dict[str, Any] = {"preset": args.mesh_preset}
-        if args.voxel is not None:
-            mesh["voxel"] = args.voxel
-        elif scene.bundled is not None and args.mesh_preset == "synthetic" and min(scene.width, scene.height) != 128:
-            mesh["voxel"] = 1.0 / min(scene.width, scene.height)  # the preset's voxel (1/128 at 128 px) per pixel size
-        cells += expand([scene], variants, seeds, out, inits, preset=args.preset, factor=args.factor,
-                        train_overrides=train_overrides, polar_overrides=polar_overrides, mesh=mesh,
-                        eval={"num_samples": args.eval_samples, "cull": not args.no_cull},
-                        threads=args.threads_per_run, device=args.device,
-                        checkpoint_every=getattr(args, "checkpoint_every", None),
-                        reader={} if scene.bundled is not None else dict(reader))
-    for variant in dict.fromkeys(variants):  # overrides are checked before anything runs
-        probe = next(c for c in cells if c.variant == variant)
-        try:
-            probe.configs()
-        except (KeyError, TypeError, ValueError) as err:
-            raise UsageError(f"--train-set / --polar-set: {err}".replace("'", "") if isinstance(err, KeyError) else f"--train-set / --polar-set: {err}") from None
-    return cells
+    def warn(line: str) -> None:
+        print(f"warning: {line}", file=sys.stderr)
+
+    return build(grid_options(args), scene_texts, variants, seeds, warn=warn)
 
 
 def execute(args: argparse.Namespace, cells: list, command: str) -> int:
@@ -375,7 +326,7 @@ def _key_values(items: list[str], option: str) -> dict[str, str]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise UsageError(f"{option}: expected KEY=VALUE, got {item!r}")
+            raise PolarInputError(option, f"expected KEY=VALUE, got {item!r}")
         out[key.strip()] = value
     return out
 
@@ -398,7 +349,7 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
         parts += ["--polar-set", item]
     if args.no_cull:
         parts.append("--no-cull")
-    reader = cell_reader(args)
+    reader = reader_options(args).to_dict()
     if "fmt" in reader:
         parts += ["--format", reader["fmt"]]
     if "pattern" in reader:
@@ -447,28 +398,26 @@ def run(args: argparse.Namespace) -> int:
 
             print(f"report: {write_report(out, results)}")
         return 0
+    if not args.scenes:
+        raise PolarInputError("--scenes", "required (or --gather-only)")
     try:
-        if not args.scenes:
-            raise UsageError("--scenes: required (or --gather-only)")
-        try:
-            variants = parse_variants(args.variants)
-        except ValueError as err:
-            raise UsageError(f"--variants: {err}") from None
-        try:
-            seeds = [int(s) for s in _split(args.seeds, "--seeds")]
-        except ValueError:
-            raise UsageError(f"--seeds: expected comma-separated integers, got {args.seeds!r}") from None
-        cells = build_cells(args, _split(args.scenes, "--scenes"), variants, seeds)
-        _key_values(args.slurm_additional_parameters, "--slurm-additional-parameters")
-        if args.executor == "submitit":
-            from polargs_plugin.ablation.executors import ExecutorUnavailable, require_submitit
+        variants = parse_variants(args.variants)
+    except ValueError as err:
+        raise PolarInputError("--variants", str(err)) from None
+    seed_texts = _split(args.seeds, "--seeds")
+    try:
+        seeds = [int(s) for s in seed_texts]
+    except ValueError:
+        raise PolarInputError("--seeds", f"expected comma-separated integers, got {args.seeds!r}") from None
+    cells = build_cells(args, _split(args.scenes, "--scenes"), variants, seeds)
+    _key_values(args.slurm_additional_parameters, "--slurm-additional-parameters")
+    if args.executor == "submitit":
+        from polargs_plugin.ablation.executors import ExecutorUnavailable, require_submitit
 
-            try:
-                require_submitit()
-            except ExecutorUnavailable as err:
-                raise UsageError(str(err)) from None
-    except UsageError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        try:
+            require_submitit()
+        except ExecutorUnavailable as err:  # names the option itself
+            print(f"error: {err}", file=sys.stderr)
+            return 2
     extra = ["--scenes", args.scenes, "--variants", ",".join(variants), "--seeds", ",".join(map(str, seeds))]
     return execute(args, cells, command_line("ablate", args, extra))

@@ -8,6 +8,8 @@ import math
 import warnings
 from pathlib import Path
 
+from polargs_plugin.cli.common import add_reader_options, reader_options
+
 _EPILOG = """examples:
   polargs check data/RMVP3D/shisa
   polargs check synthetic:shiny_torus --json report.json
@@ -36,8 +38,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("dataset", metavar="DATASET", help="dataset folder (any supported format) or synthetic:NAME")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report as JSON")
     parser.add_argument("--views", action="store_true", help="print one line per view")
-    from polargs_plugin.cli.train import add_reader_options
-
     add_reader_options(parser)
     parser.set_defaults(func=run)
 
@@ -50,29 +50,25 @@ def _line(stats) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Load the dataset, run :func:`~polargs_plugin.data.checks.check_views`, print the verdict."""
-    from polargs_plugin.cli.mesh import fail
-    from polargs_plugin.cli.train import load_dataset, reader_kwargs
     from polargs_plugin.data.checks import check_views
-    from polargs_plugin.io import PolarInputError, atomic_write
+    from polargs_plugin.io import atomic_write
+    from polargs_plugin.service.data import load_dataset
 
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            views = load_dataset(args.dataset, args.format, None, **reader_kwargs(args))
-        for warning in caught:
-            if issubclass(warning.category, UserWarning) and "TBB" not in str(warning.message):
-                print(f"warning: {warning.message}")
-        report = check_views(views)
-        print(f"{args.dataset}: {len(views)} views, AoLP along the silhouettes: {report.verdict}")
-        print(_line(report.overall))
-        if args.views:
-            for stats in report.views:
-                print(_line(stats))
-        for message in report.messages:
-            print(f"note: {message}")
-        if args.json is not None:
-            with atomic_write(args.json) as handle:
-                json.dump(report.to_dict(), handle, indent=2, default=lambda x: None)
-    except PolarInputError as err:
-        raise fail(str(err)) from None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        views = load_dataset(args.dataset, reader_options(args)).views
+    for warning in caught:
+        if issubclass(warning.category, UserWarning) and "TBB" not in str(warning.message):
+            print(f"warning: {warning.message}")
+    report = check_views(views)
+    print(f"{args.dataset}: {len(views)} views, AoLP along the silhouettes: {report.verdict}")
+    print(_line(report.overall))
+    if args.views:
+        for stats in report.views:
+            print(_line(stats))
+    for message in report.messages:
+        print(f"note: {message}")
+    if args.json is not None:
+        with atomic_write(args.json) as handle:
+            json.dump(report.to_dict(), handle, indent=2, default=lambda x: None)
     return 1 if report.verdict in ("mirrored", "rotated") else 0

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 _DESCRIPTION = """\
@@ -45,23 +44,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from polargs_plugin.ablation.scenes import bundled_names
     from polargs_plugin.ablation.variants import parse_variants
-    from polargs_plugin.cli.ablate import UsageError, build_cells, command_line, execute
+    from polargs_plugin.cli.ablate import build_cells, command_line, execute
+    from polargs_plugin.io import PolarInputError
 
     out: Path = args.out
     if out.exists() and not out.is_dir():
-        print(f"error: {out}: exists and is not a folder", file=sys.stderr)
-        return 2
+        raise PolarInputError(out, "exists and is not a folder")
+    if args.scene not in bundled_names():
+        raise PolarInputError("--scene", f"unknown bundled scene '{args.scene}' (known: {', '.join(bundled_names())})")
     try:
-        if args.scene not in bundled_names():
-            raise UsageError(f"--scene: unknown bundled scene '{args.scene}' (known: {', '.join(bundled_names())})")
-        try:
-            variants = parse_variants(args.variants)
-        except ValueError as err:
-            raise UsageError(f"--variants: {err}") from None
-        cells = build_cells(args, [args.scene], variants, [args.seed])
-    except UsageError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        variants = parse_variants(args.variants)
+    except ValueError as err:
+        raise PolarInputError("--variants", str(err)) from None
+    cells = build_cells(args, [args.scene], variants, [args.seed])
     extra = ["--scene", args.scene] + (["--variants", ",".join(variants)] if variants != ["base", "full"] else []) + (
         ["--seed", str(args.seed)] if args.seed else [])
     return execute(args, cells, command_line("demo", args, extra))

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
 
-# Mesh files looked up, in order, when ``--gt`` is a folder (the same as `polargs ablate`'s): the
-# object-only evaluation GT that the bundled scenes ship, then the whole-scene mesh.
-from polargs_plugin.ablation.scenes import GT_MESH_NAMES
+from polargs_plugin.io import PolarInputError
+from polargs_plugin.service.evaluation import EvalSettings, evaluate, metrics_path, write_metrics
 
 _EPILOG = """examples:
   polargs eval runs/sphere --gt scenes/sphere              # GT = scenes/sphere/gt_mesh.ply (object only)
@@ -28,11 +26,6 @@ the uncapped means are reported next to them; defaults are 5 % (outlier cap) and
 the GT bounding-box diagonal. The signed distance (outside positive) tells whether the mesh sits
 inside or outside the true surface. Results are printed and written to metrics.json.
 """
-
-
-from polargs_plugin.cli.mesh import CommandError, fail  # noqa: E402  (one-line errors, exit status 2)
-
-EvalError = CommandError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -68,54 +61,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def gt_meshes(path: Path) -> tuple[Path, Path | None]:
-    """(evaluation GT mesh, whole-scene mesh that may hide it or None) for ``--gt PATH``."""
-    from polargs_plugin.io import PolarInputError
-
-    if not path.exists():
-        raise PolarInputError(path, "ground-truth mesh or folder not found")
-    if not path.is_dir():
-        return path, None
-    found = [path / name for name in GT_MESH_NAMES if (path / name).is_file()]
-    if not found:
-        raise PolarInputError(path, f"no ground-truth mesh in this folder (looked for {', '.join(GT_MESH_NAMES)})")
-    occluder = path / "mesh.ply" if found[0].name == "gt_mesh.ply" and (path / "mesh.ply").is_file() else None
-    return found[0], occluder
-
-
-def _normal_errors(model: Any, views: list, progress: bool = False, object_pixels: list | None = None) -> dict[str, float]:
-    """Per-view normal MAE (degrees) of the rendered normals inside the GT masks and, when given,
-    ``object_pixels`` (one (H, W) bool per view: where the GT object itself is seen)."""
-    import torch
-    from tqdm import tqdm
-
-    from polargs_plugin.metrics import normal_mae
-
-    per_view = {}
-    with torch.no_grad():
-        for index, view in enumerate(tqdm(views, desc="normal MAE", unit="view", disable=not progress)):
-            if view.normal_gt is None:
-                continue
-            valid = view.normal_gt.norm(dim=0, keepdim=True) > 0
-            mask = valid if view.mask is None else view.mask.bool() & valid
-            if object_pixels is not None:
-                mask = mask & torch.from_numpy(object_pixels[index])[None]
-            if not bool(mask.any()):
-                continue  # the object is out of this view
-            normal = model.render(view).normal.cpu()
-            per_view[view.name] = normal_mae([normal], [view.normal_gt.cpu()], [mask.cpu()])
-    return per_view
-
-
-def _json_safe(value: Any) -> Any:
-    """NaN (every distance above the outlier cap) becomes null: strict JSON has no NaN."""
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    return value
-
-
 def format_table(metrics: dict[str, Any]) -> str:
     """The metrics as an aligned two-column text table."""
     rows: list[tuple[str, str]] = []
@@ -146,117 +91,24 @@ def format_table(metrics: dict[str, Any]) -> str:
     return "\n".join(f"{name:<{width}}  {value}" for name, value in rows)
 
 
+def settings_from_args(args: argparse.Namespace) -> EvalSettings:
+    """The :class:`EvalSettings` of parsed ``polargs eval`` options."""
+    return EvalSettings(
+        gt=args.gt, normals=args.normals, region=args.region, cull=args.cull, views=args.views,
+        num_samples=args.num_samples, seed=args.seed, max_dist=args.max_dist, fscore_threshold=args.fscore_threshold,
+        units=args.units, cull_dilation=args.cull_dilation,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
-    """Evaluate, print the table and write metrics.json atomically.
-
-    Ordinary errors (missing files, a run without mesh, no GT normals) are printed as one
-    ``error: FILE: problem`` line and raise :class:`EvalError` (exit status 2).
-    """
-    from polargs_plugin.io import PolarInputError
-
+    """Evaluate, print the table and write metrics.json atomically."""
     try:
-        return _run(args)
-    except PolarInputError as err:
-        raise fail(str(err)) from None
+        metrics = evaluate(args.target, settings_from_args(args), progress=not args.quiet)
+    except PolarInputError:  # already names its file
+        raise
     except ValueError as err:  # the metrics' own checks (empty masks, everything culled, ...)
-        raise fail(f"{args.target}: {err}") from None
-
-
-def _region(args: argparse.Namespace, have_views: bool) -> str:
-    region = getattr(args, "region", None)
-    if region is None:
-        region = "object" if (getattr(args, "cull", False) or have_views) else "all"
-    return region
-
-
-def _run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from polargs_plugin.cli.mesh import MESH_FILE, load_run
-    from polargs_plugin.io import PolarInputError, atomic_write
-    from polargs_plugin.mesh import read_mesh
-    from polargs_plugin.metrics import chamfer_distance, mesh_silhouettes
-
-    target: Path = args.target
-    progress = not getattr(args, "quiet", False)
-    is_run = target.is_dir()
-    if not is_run and not target.is_file():
-        raise PolarInputError(target, "neither a run folder nor a mesh file")
-    if args.gt is None and not args.normals:
-        raise PolarInputError(target, "nothing to do; give --gt GT_MESH and/or --normals")
-    views_spec = getattr(args, "views", None)
-    if args.normals and not is_run:
-        raise PolarInputError(target, "--normals needs a run folder (a model to render), not a mesh file")
-    region = _region(args, is_run or views_spec is not None)
-    if region != "all" and not is_run and views_spec is None:
-        raise PolarInputError(target, f"--region {region} needs cameras: a run folder, or --views DATASET for a mesh file")
-
-    model = views = None
-    if is_run and (args.normals or (args.gt is not None and region != "all")):
-        mesh_path = target / MESH_FILE
-        if args.gt is not None and not mesh_path.is_file():  # say this before loading a whole dataset
-            raise PolarInputError(mesh_path, "no mesh in this run; run `polargs mesh` first")
-        model, views = load_run(target)
-    if views_spec is not None:
-        from polargs_plugin.cli.train import load_dataset
-
-        views = load_dataset(str(views_spec))
-
-    metrics: dict[str, Any] = {"target": str(target)}
-    if args.gt is not None:
-        mesh_path = target / MESH_FILE if is_run else target
-        if is_run and not mesh_path.is_file():
-            raise PolarInputError(mesh_path, "no mesh in this run; run `polargs mesh` first")
-        gt_path, occluder_path = gt_meshes(Path(args.gt))
-        pred, gt = read_mesh(mesh_path), read_mesh(gt_path)
-        occluder = read_mesh(occluder_path) if occluder_path is not None and region == "object" else None
-        cull_views = None
-        if region != "all":
-            cull_views = list(views)
-            if region == "masks":
-                cull_views = [v for v in cull_views if v.mask is not None]
-                if not cull_views:
-                    raise PolarInputError(target, "--region masks needs views with masks; these have none")
-        steps = {"all": 3, "masks": 4, "object": 5}[region]
-        with tqdm(total=steps, desc="Chamfer", unit="step", disable=not progress) as bar:
-            def step(name: str) -> None:
-                if bar.n or name != "sampling":
-                    bar.update(1)
-                bar.set_postfix_str(name)
-
-            metrics["chamfer"] = chamfer_distance(
-                pred, gt, num_samples=args.num_samples, seed=args.seed, max_dist=args.max_dist,
-                fscore_threshold=args.fscore_threshold, cull_views=cull_views,
-                cull_dilation_px=args.cull_dilation, units=args.units, region=region,
-                occluder=occluder, progress=step,
-            )
-            bar.update(bar.total - bar.n)
-        metrics.update(mesh=str(mesh_path), gt=str(gt_path))
-        if occluder is not None:
-            metrics["occluder"] = str(occluder_path)
-    if args.normals:
-        with_gt = [v for v in views if v.normal_gt is not None]
-        if not with_gt:
-            source = getattr(views[0], "source", "") or str(target) if views else str(target)
-            raise PolarInputError(source, "--normals: the dataset has no ground-truth normal maps "
-                                  "(docs/readers.md lists which readers load them)")
-        object_pixels = None
-        if args.gt is not None and region == "object":
-            # the same object as Chamfer's: a support plane in the masks (and GT normal maps) is left out
-            object_pixels = mesh_silhouettes(gt, with_gt, occluder)
-        per_view = _normal_errors(model, with_gt, progress, object_pixels)
-        if not per_view:
-            raise PolarInputError(target, "--normals: no view has ground-truth normals inside its mask")
-        metrics["normal_mae_per_view"] = per_view
-        metrics["normal_mae_deg"] = sum(per_view.values()) / len(per_view)
-        metrics["normal_region"] = "masks" if object_pixels is None else "object"
-
-    out = args.out or (target / "metrics.json" if is_run else target.with_name(target.stem + ".metrics.json"))
-    try:
-        with atomic_write(out) as handle:
-            json.dump(_json_safe(metrics), handle, indent=2, allow_nan=False)
-    except OSError as err:
-        raise PolarInputError(out, f"cannot write the metrics ({err.strerror or err})") from None
+        raise PolarInputError(args.target, str(err)) from None
+    out = write_metrics(metrics, args.out or metrics_path(args.target))
     print(format_table(metrics))
     print(f"metrics written to {out}")
     return 0

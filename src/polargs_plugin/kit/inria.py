@@ -10,23 +10,17 @@ render package becomes a :class:`RenderOut` and how its ``densification_postfix`
 
 Patched training loops call three methods (all iterations 1-based, as the loops count)::
 
-    polar = Adapter.attach(scene, gaussians, pipe, render, **render_kwargs)   # before the loop
+    polar = adapter_module.attach(scene, gaussians, pipe, render, **render_kwargs)   # before the loop
     loss = loss + polar.loss(iteration, viewpoint_cam, render_pkg)            # before backward
     polar.densify(iteration, viewpoint_cam, render_pkg)                       # after the step
 
-:meth:`InriaAdapter.attach` reads its settings from the environment: :data:`ENV_DATA` (the
-polarimetric dataset folder, any format ``polargs_plugin.data.registry.load_views`` reads;
-required), :data:`ENV_PRESET` (``real`` (default) or ``synthetic``), :data:`ENV_CONFIG`
-(a JSON file of PolarConfig fields set on that preset) and :data:`ENV_KEEP_NATIVE` (``1`` keeps
-the plug-in's copies of loss terms the trainer has natively; they are off by default). The
-preset is built first, the trainer's native terms are switched off, then the JSON file is
-applied, so a term the file switches on explicitly stays on.
+Each adapter module's ``attach`` reads the polarimetric data and the settings from the
+environment (``POLARGS_DATA``, ``POLARGS_PRESET``, ``POLARGS_CONFIG``, ``POLARGS_KEEP_NATIVE``:
+:mod:`polargs_plugin.service.adapters`) and builds the adapter.
 """
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping, Sequence
 
@@ -41,38 +35,7 @@ from polargs_plugin.kit.append import pad_rows, raw_from_new
 from polargs_plugin.kit.cameras import view_from_graphdeco
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
-__all__ = ["ENV_DATA", "ENV_PRESET", "ENV_CONFIG", "ENV_KEEP_NATIVE", "config_from_env", "match_views", "InriaAdapter"]
-
-ENV_DATA = "POLARGS_DATA"
-ENV_PRESET = "POLARGS_PRESET"
-ENV_CONFIG = "POLARGS_CONFIG"
-ENV_KEEP_NATIVE = "POLARGS_KEEP_NATIVE"
-_PRESETS = ("real", "synthetic")
-
-
-def config_from_env(environ: Mapping[str, str] | None = None, native_terms: Sequence[str] = ()) -> PolarConfig:
-    """The PolarConfig named by :data:`ENV_PRESET`, the ``native_terms`` loss switches off (unless
-    :data:`ENV_KEEP_NATIVE` is ``1``), then the fields of :data:`ENV_CONFIG` set on it.
-
-    Raises:
-        ValueError: unknown preset; PolarInputError: unreadable or invalid config file.
-    """
-    environ = os.environ if environ is None else environ
-    preset = environ.get(ENV_PRESET, "real")
-    if preset not in _PRESETS:
-        raise ValueError(f"{ENV_PRESET}={preset!r}: unknown preset (choose one of {', '.join(_PRESETS)})")
-    config = getattr(PolarConfig, preset)()
-    if environ.get(ENV_KEEP_NATIVE, "0") != "1":
-        for switch in native_terms:
-            setattr(config.losses, switch, False)
-    path = environ.get(ENV_CONFIG)
-    if path:
-        try:
-            data = json.loads(Path(path).read_text())
-            config.update(data)
-        except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:  # ValueError: JSON, kinds, ranges
-            raise PolarInputError(path, f"cannot use as {ENV_CONFIG} ({type(err).__name__}: {err})") from err
-    return config
+__all__ = ["match_views", "InriaAdapter"]
 
 
 def _resized(image: Tensor, height: int, width: int, mode: str) -> Tensor:
@@ -185,19 +148,13 @@ class InriaAdapter:
         self.appended = 0
 
     @classmethod
-    def attach(cls, scene: Any, gaussians: Any, pipe: Any, render: Callable[..., dict], **render_kwargs: Any) -> "InriaAdapter":
-        """Build the adapter from the environment (:data:`ENV_DATA`, :data:`ENV_PRESET`,
-        :data:`ENV_CONFIG`, :data:`ENV_KEEP_NATIVE`; see the module docstring)."""
-        from polargs_plugin.data.registry import load_views
-
-        data = os.environ.get(ENV_DATA)
-        if not data:
-            raise ValueError(f"{ENV_DATA} is not set: point it at the polarimetric dataset folder of this scene")
-        config = config_from_env(native_terms=tuple(cls.native_terms))
-        return cls(
-            scene, gaussians, pipe, render, load_views(data),
-            config=config, keep_native_terms=True, render_kwargs=render_kwargs, source=data,
-        )
+    def from_inputs(cls, inputs: Any, scene: Any, gaussians: Any, pipe: Any, render: Callable[..., dict],
+                    **render_kwargs: Any) -> "InriaAdapter":
+        """The adapter of a patched loop, from the views and settings its environment gave
+        (``polargs_plugin.service.adapter_inputs``: ``views``, ``config``, ``source``). The
+        settings already hold the native-term switches, so they are kept as given."""
+        return cls(scene, gaussians, pipe, render, inputs.views, config=inputs.config, keep_native_terms=True,
+                   render_kwargs=render_kwargs, source=inputs.source)
 
     # ------------------------------------------------------------------ translation
     def gaussian_state(self) -> GaussianState:

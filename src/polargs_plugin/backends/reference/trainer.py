@@ -55,7 +55,7 @@ from polargs_plugin.losses import photometric_loss
 from polargs_plugin.threads import ThreadPolicy
 from polargs_plugin.types import GaussianState, RenderOut, TrainingHooks, View, validate_view
 
-__all__ = ["TrainConfig", "Trainer", "TrainingHooks", "TrainingDiverged", "StepLogs", "CHECKPOINT_FORMAT"]
+__all__ = ["TrainConfig", "Trainer", "TrainingHooks", "TrainingDiverged", "StepLogs", "CHECKPOINT_FORMAT", "read_checkpoint"]
 
 CHECKPOINT_FORMAT = "polargs-reference-checkpoint-v1"
 
@@ -439,14 +439,7 @@ class Trainer:
         Only load checkpoints from trusted sources (``torch.load`` with ``weights_only=True``).
         """
         path = Path(path)
-        if not path.is_file():
-            raise PolarInputError(path, "checkpoint file not found")
-        try:
-            data = torch.load(path, map_location=self.device, weights_only=True)
-        except Exception as err:  # truncated, not a torch file, or disallowed types
-            raise PolarInputError(path, f"cannot read checkpoint ({type(err).__name__}: {err})") from err
-        if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
-            raise PolarInputError(path, f"not a {CHECKPOINT_FORMAT} file")
+        data = read_checkpoint(path, self.device)
         names = [v.name for v in self.views]
         if data["view_names"] != names:
             raise PolarInputError(path, "checkpoint was trained on different views than the ones given")
@@ -473,6 +466,26 @@ class Trainer:
         random.setstate(_to_tuple(rng["python"]))
         self._sampler.set_state(rng["sampler"].cpu())
         self._order = [int(i) for i in rng["order"]]
+
+
+def read_checkpoint(path: str | Path, map_location: torch.device | str = "cpu") -> dict[str, Any]:
+    """The contents of a checkpoint written by :meth:`Trainer.save_checkpoint`.
+
+    Only plain tensors and containers are unpickled (``torch.load(weights_only=True)``).
+
+    Raises:
+        PolarInputError: naming the file: missing, unreadable, or not a checkpoint of this package.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PolarInputError(path, "checkpoint file not found")
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # truncated, not a torch file, or disallowed types
+        raise PolarInputError(path, f"cannot read checkpoint ({type(err).__name__}: {err})") from err
+    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+        raise PolarInputError(path, f"not a {CHECKPOINT_FORMAT} file")
+    return data
 
 
 class StepLogs(Mapping):
