@@ -12,7 +12,7 @@ if TYPE_CHECKING:
 
 _EPILOG = """examples:
   polargs preprocess scenes/sphere                      # writes scenes/sphere/preprocessed/
-  polargs preprocess data/frog --out /tmp/frog --format nersp
+  polargs preprocess data/frog --out out/frog --format nersp
   polargs preprocess captures/ --pattern auto --bit-depth 12 --sfm --preset real
   polargs preprocess scenes/sphere --config settings.json --no-pictures
 
