@@ -16,7 +16,7 @@ channel mean; ``diffuse_gt``: the true diffuse colour), over all views of each s
 
 The masks use the paper's thresholds (``CorrectionConfig``: brightness >= 160/255 of the
 channel-mean peak); ``--intensity-low`` changes the lower brightness bound. docs/results.md
-"Stop 22" reads these figures. A few seconds per scene on 2 cores.
+"Known limits" reads these figures. A few seconds per scene on 2 cores.
 
 Usage: python bench/pc_masks.py [--scenes glossy_plane_sphere,...] [--views 24] [--size 128] [--intensity-low 0.627]
 """

@@ -22,7 +22,7 @@ largest colour/depth difference of each path against it.
 
     .venv/bin/python bench/rasterizer.py                      # both configurations, 2 threads
     .venv/bin/python bench/rasterizer.py --configs 30000:400x300 --backends torch,numba
-    git archive HEAD src | tar -x -C /tmp/ref && .venv/bin/python bench/rasterizer.py --ref-src /tmp/ref/src
+    mkdir -p out/ref && git archive HEAD src | tar -x -C out/ref && .venv/bin/python bench/rasterizer.py --ref-src out/ref/src
 
 The last line printed is one JSON object with the figures of every configuration.
 """

@@ -1,4 +1,4 @@
-"""Faults a real user meets on the command line (issue 11): raw-mosaic folders read with the wrong
+"""Faults a real user meets on the command line: raw-mosaic folders read with the wrong
 pattern, SfM with too few views, reader options on the wrong format, file modes, a slow --help.
 Every error is one line ``error: FILE: problem`` naming the file or argument, with nothing
 half-written."""

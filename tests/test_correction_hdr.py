@@ -53,13 +53,13 @@ def render_metal_highlight(peak: float = 4.0) -> tuple[torch.Tensor, torch.Tenso
     return torch.stack([s0, s1, s2]).float(), mask, (specular.mean(0, keepdim=True))
 
 
-def test_rendered_metal_highlight_has_the_dolp_of_the_issue():
+def test_rendered_metal_highlight_has_the_dolp_of_a_copper_pan():
     stokes, mask, lobe = render_metal_highlight()
     core = lobe > 1.0
     s0, s1, s2 = stokes.mean(1).unbind(0)
     dolp = torch.hypot(s1, s2) / s0
     assert core.sum() > 20 and float((stokes[0] / 2).max()) > 3.0
-    assert 0.12 <= float(dolp[core[0]].min()) and float(dolp[core[0]].max()) <= 0.3  # issue 11: 0.12-0.29
+    assert 0.12 <= float(dolp[core[0]].min()) and float(dolp[core[0]].max()) <= 0.3  # a copper pan's highlight: 0.12-0.29
 
 
 def test_default_assigns_a_metal_highlight_and_paper_literal_misses_its_rim():
@@ -123,10 +123,9 @@ def test_ldr_input_is_unchanged_by_the_white_level_machinery():
 
 
 def test_pixels_above_the_white_level_are_never_i_chro_donors():
-    """Issue 11's case: an overexposed pixel (s0/2 ~ 0.9, DoLP 0.05) next to a highlight core above
-    the white level (s0/2 = 3). The paper's inclusive range up to 255/255 left the core out of both
-    masks, so it donated I_diff ~ 2.9 and I_chro came out ~2.1 where s0/2 ~ 0.9 (measured on the
-    code before issue 11)."""
+    """An overexposed pixel (s0/2 ~ 0.9, DoLP 0.05) next to a highlight core above the white level
+    (s0/2 = 3). Read literally, the paper's inclusive range up to 255/255 leaves the core out of
+    both masks, so it would donate I_diff ~ 2.9 and I_chro would come out ~2.1 where s0/2 ~ 0.9."""
     size = 15
     g = torch.Generator().manual_seed(0)
     half_s0 = 0.3 + 0.05 * torch.rand(3, size, size, generator=g)  # dim diffuse surroundings

@@ -153,7 +153,7 @@ print(json.dumps({"params": digest.hexdigest(), "num": trainer.model.num,
 
 
 def test_two_full_runs_with_the_same_seed_are_bit_identical():
-    """Issue 11 §5: a Full run (PC + Dense scheduled every 10 iterations) repeated in a fresh process,
+    """A Full run (PC + Dense scheduled every 10 iterations) repeated in a fresh process,
     with numba and torch on 2 threads, gives bit-identical parameters."""
     import json
     import os

@@ -1,4 +1,4 @@
-"""Faults real runs meet, at the PolarHooks door (issue 11 §1, §4): each case's message names the
+"""Faults real runs meet, at the PolarHooks door: each case's message names the
 file, argument or view, and nothing NaN remains."""
 
 from __future__ import annotations

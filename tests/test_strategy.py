@@ -185,7 +185,7 @@ def test_max_gaussians_caps_growth_by_gradient():
 
 
 def _indexed_update(state, grad, radii, width, height):
-    """DensityControl.update as written before issue 9 (boolean indexing), for comparison."""
+    """DensityControl.update written with boolean indexing, the plain form to compare against."""
     visible = radii > 0
     norms = (grad[visible] * grad.new_tensor([width / 2.0, height / 2.0])).norm(dim=-1)
     state["grad2d"][visible] += norms

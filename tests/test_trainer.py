@@ -391,7 +391,7 @@ def test_progress_bar_ends_on_the_summary_psnr(views, capsys):
 
 
 def test_cpu_preset_runs_the_paper_polargs_schedule_at_half_its_counts():
-    """Issue 9's CPU preset: 5000 vanilla iterations (x1/6) with the paper's Dense window 1k-7k every
+    """The CPU preset: 5000 vanilla iterations (x1/6) with the paper's Dense window 1k-7k every
     100 and L_dn start 7k scaled by 1/2 (at most 2x), the same in the library, `polargs ablate` and
     `polargs train --schedule cpu`; a --factor F scales PolarGS by min(1, 3F)."""
     from polargs_plugin.ablation.variants import polar_config as variant_polar, train_config as variant_train

@@ -1,5 +1,5 @@
 """``polargs train``: run folder contents, refusal to overwrite, resume, presets and switches,
-settings files, the maps cache, interruption, locks and data fingerprints (issue 11)."""
+settings files, the maps cache, interruption, locks and data fingerprints."""
 
 import argparse
 import json

@@ -196,7 +196,8 @@ def polar_loss(
         hooks: a preprocessed :class:`polargs_plugin.PolarHooks`.
         step: gsplat's 0-based step; the hooks get ``step + 1`` (their iterations are 1-based).
         view: the trained view (:func:`view_from_gsplat`, same name as at ``hooks.preprocess``).
-        render_colors, render_alphas: ``rasterization`` outputs, colours from :func:`polar_colors`.
+        render_colors: ``rasterization``'s colour output, the colours from :func:`polar_colors`.
+        render_alphas: ``rasterization``'s alpha output.
         info: gsplat's ``meta`` dict of this render, or None. When given, ``info["polar_view"]``
             and ``info["polar_render"]`` (the detached RenderOut) are set so that
             :meth:`PolarStrategy.step_post_backward` densifies from this view and render.

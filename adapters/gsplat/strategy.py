@@ -122,21 +122,21 @@ class PolarStrategy(Strategy):
 
     Args:
         hooks (TrainingHooks): the PolarGS hooks (a ``PolarHooks``), already ``preprocess``-ed
-          with the training views (their names are how Dense finds a view's maps and sources).
-          Required; a dataclass default of None only keeps gsplat's all-keyword style.
+            with the training views (their names are how Dense finds a view's maps and sources).
+            Required; a dataclass default of None only keeps gsplat's all-keyword style.
         inner (Strategy): the gsplat strategy doing the usual density control:
-          ``DefaultStrategy()`` (default) or ``MCMCStrategy(...)``; any strategy with the same
-          interface works.
+            ``DefaultStrategy()`` (default) or ``MCMCStrategy(...)``; any strategy with the same
+            interface works.
         render_fn (callable): ``render_fn(view) -> RenderOut`` with the current Gaussians, for the
-          PatchMatch source views (:func:`make_render_fn`). Default None: taken from
-          ``info["polar_render_fn"]`` / the ``render_fn=`` argument of ``step_post_backward``.
+            PatchMatch source views (:func:`make_render_fn`). Default None: taken from
+            ``info["polar_render_fn"]`` / the ``render_fn=`` argument of ``step_post_backward``.
         cap_max (int): no Polar append beyond this many Gaussians. Default None: the inner
-          strategy's ``cap_max`` when it has one (MCMC), else unlimited. Appended Gaussians count
-          against MCMC's ``cap_max``; when the new rows do not fit, an evenly spaced subset of them
-          is kept (the densifier emits them in image order, so a prefix would cover only the top
-          of the image) and the rest are counted in ``state["polar"]["dropped_cap"]``.
+            strategy's ``cap_max`` when it has one (MCMC), else unlimited. Appended Gaussians count
+            against MCMC's ``cap_max``; when the new rows do not fit, an evenly spaced subset of them
+            is kept (the densifier emits them in image order, so a prefix would cover only the top
+            of the image) and the rest are counted in ``state["polar"]["dropped_cap"]``.
         extra_rows (dict): ``name -> fn(new, param) -> rows`` for extra per-Gaussian parameters
-          (see :func:`rows_from_new`).
+            (see :func:`rows_from_new`).
         verbose (bool): print every append.
 
     Examples:
@@ -213,7 +213,11 @@ class PolarStrategy(Strategy):
         """The inner strategy's step, then Dense (call it after the optimizer steps).
 
         Args:
-            params, optimizers, state, step, info: as gsplat's strategies (``step`` 0-based).
+            params: the gsplat parameters, as for gsplat's strategies.
+            optimizers: their optimizers, as for gsplat's strategies.
+            state: this strategy's state (:meth:`initialize_state`).
+            step: gsplat's 0-based step.
+            info: gsplat's ``meta`` dict of the step's render.
             packed: passed to an inner strategy that takes it (DefaultStrategy).
             lr: the means' learning rate, passed to an inner strategy that takes it (MCMC,
                 required there).

@@ -60,9 +60,9 @@ APP_IMAGE_SSIM_LOSS_BELOW = 0.5
 class PgsrAdapter(InriaAdapter):
     """:class:`polargs_plugin.kit.inria.InriaAdapter` for PGSR's ``train.py``.
 
-    Args:
-        as :class:`InriaAdapter`; ``max_gaussians`` defaults to the model's ``max_all_points``
-        (set by PGSR's ``training_setup``). ``render_kwargs`` carries PGSR's ``app_model``.
+    Takes the arguments of :class:`InriaAdapter`; ``max_gaussians`` defaults to the model's
+    ``max_all_points`` (set by PGSR's ``training_setup``), and ``render_kwargs`` carries PGSR's
+    ``app_model``.
     """
 
     native_terms: ClassVar[dict[str, str]] = {

@@ -52,7 +52,7 @@ from polargs_plugin.types import (
 __all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]
 
 # Bump when compute_polar_maps changes its output for the same input: old cache files are ignored.
-# 2: HDR white level, the DoLP-gap rule, physical-cone clamping (issue 11).
+# Version 2: the HDR white level, the rule between the DoLP ranges, the physical-cone projection.
 _CACHE_VERSION = 2
 _MAP_FIELDS = ("aolp", "dolp", "intensity", "specular_mask", "overexposed_mask", "pri", "i_diff", "i_chro")
 

@@ -10,7 +10,7 @@ from polargs_plugin.cli.argtypes import image_size, positive_int
 _EPILOG = """examples:
   polargs generate --scene glossy_plane_sphere --out scenes/sphere
   polargs generate --scene bumpy_mixed --out scenes/bumpy --views 36 --size 160x120 --pictures
-  polargs generate --scene shiny_torus --out /tmp/torus --small     # 8 views of 48x48, for tests
+  polargs generate --scene shiny_torus --out out/torus --small      # 8 views of 48x48, for tests
 
 The folder holds four RGB angle images per view (0/45/90/135 deg), cameras.json (K and
 world_to_camera, OpenCV frame), masks, ground-truth normals/depth/diffuse/specular, highlight and

@@ -10,7 +10,7 @@ from polargs_plugin.service.configs import PRESETS
 
 _EPILOG = """examples:
   polargs preprocess scenes/sphere                      # writes scenes/sphere/preprocessed/
-  polargs preprocess data/frog --out /tmp/frog --format nersp
+  polargs preprocess data/frog --out out/frog --format nersp
   polargs preprocess captures/ --pattern auto --bit-depth 12 --sfm --preset real
   polargs preprocess scenes/sphere --config settings.json --no-pictures
 

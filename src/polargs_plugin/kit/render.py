@@ -66,7 +66,10 @@ def aux_channels(means: Tensor, quats: Tensor, scales: Tensor, world_to_camera: 
     (sum w n, sum w, sum w z, sum w d): pass it to :func:`render_out_from_aux`.
 
     Args:
-        means, quats, scales, world_to_camera: as :func:`gaussian_normals`.
+        means: (N, 3) world positions, as :func:`gaussian_normals`.
+        quats: (N, 4) wxyz rotations, as :func:`gaussian_normals`.
+        scales: (N, 3) activated scales, as :func:`gaussian_normals`.
+        world_to_camera: (4, 4) OpenCV world-to-camera transform, as :func:`gaussian_normals`.
 
     Returns:
         (N, 6) channels in :data:`AUX_CHANNELS` order: camera-frame normal n (3), 1, camera z,
@@ -96,7 +99,9 @@ def render_out_from_aux(
             (H, W, 6) images (gsplat) must be permuted first.
         K: (3, 3) intrinsics of the render; given, the RenderOut also has the unbiased plane
             depth (:func:`depth_from_plane`), which L_dn then uses.
-        median_depth, means2d, radii: passed through.
+        median_depth: passed through to the RenderOut.
+        means2d: passed through to the RenderOut.
+        radii: passed through to the RenderOut.
 
     Returns:
         RenderOut with depth = sum w z / alpha (0 where alpha ~ 0), the alpha-weighted normal
@@ -131,7 +136,10 @@ def clamped_aux_colors(
     :func:`render_out_from_clamped_aux` decodes them.
 
     Args:
-        means, quats, scales, world_to_camera: as :func:`gaussian_normals`.
+        means: (N, 3) world positions, as :func:`gaussian_normals`.
+        quats: (N, 4) wxyz rotations, as :func:`gaussian_normals`.
+        scales: (N, 3) activated scales, as :func:`gaussian_normals`.
+        world_to_camera: (4, 4) OpenCV world-to-camera transform, as :func:`gaussian_normals`.
 
     Returns:
         ``(normal_colors (N, 3), alpha_depth_colors (N, 3), z_scale)``; ``z_scale`` is just above the
