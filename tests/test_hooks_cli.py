@@ -61,7 +61,7 @@ def test_preprocess_takes_the_train_settings_file_and_presets(tmp_path, capsys):
     settings.write_text(json.dumps({"polar": {"correction": {"mahalanobis": 0.5}}}))
     assert main(["preprocess", str(dataset), "--config", str(settings)]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"error: {settings}: unknown key 'polar.correction.mahalanobis'") and err.count("\n") == 1
+    assert err.startswith(f"error: {settings}: polar.correction: unknown setting 'mahalanobis'") and err.count("\n") == 1
     assert main(["preprocess", str(dataset), "--bit-depth", "12"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {dataset}: --bit-depth: only for polar folders") and "polargs dataset" in err
