@@ -8,7 +8,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from polargs_plugin.backends.reference.projection import Projection, eval_sh, project_gaussians
+from polargs_plugin.backends.reference.projection import Projection, project_gaussians
+from polargs_plugin.geometry import eval_sh
 from polargs_plugin.backends.reference.projection_numba import project_numba
 from polargs_plugin.backends.reference.rasterizer import rasterize
 

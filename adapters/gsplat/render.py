@@ -31,6 +31,7 @@ from typing import Any, Callable, Mapping
 import torch
 from torch import Tensor
 
+from polargs_plugin.geometry import eval_sh
 from polargs_plugin.kit import AUX_CHANNELS, aux_channels, render_out_from_aux, state_from_raw
 from polargs_plugin.types import GaussianState, RenderOut, TrainingHooks, View
 
@@ -82,8 +83,8 @@ def sh_colors(params: Mapping[str, Tensor], viewmats: Tensor, sh_degree: int | N
     computes them internally (``clamp_min(SH(dir) + 0.5, 0)``, dir = mean - camera centre).
 
     Needed because the extra PolarGS channels only fit with ``sh_degree=None``. On CUDA this is
-    ``gsplat.spherical_harmonics``; on CPU (gsplat's is CUDA-only) the reference backend's
-    ``eval_sh``, the same real SH basis (3DGS convention).
+    ``gsplat.spherical_harmonics``; on CPU (gsplat's is CUDA-only)
+    :func:`polargs_plugin.geometry.eval_sh`, the same real SH basis (3DGS convention).
 
     Args:
         params: gsplat parameters with ``means``, ``sh0`` and (optionally) ``shN``.
@@ -107,8 +108,6 @@ def sh_colors(params: Mapping[str, Tensor], viewmats: Tensor, sh_degree: int | N
         from gsplat import spherical_harmonics
 
         return torch.clamp_min(spherical_harmonics(degree, dirs, coeffs) + 0.5, 0.0)
-    from polargs_plugin.backends.reference.projection import eval_sh
-
     return eval_sh(coeffs[:, : (degree + 1) ** 2], dirs)
 
 

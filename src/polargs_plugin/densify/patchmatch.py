@@ -45,7 +45,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from polargs_plugin.config import PatchMatchConfig
-from polargs_plugin.densify.homography import depth_from_plane, pixel_rays, plane_distance, relative_pose
+from polargs_plugin.densify.homography import pixel_rays, relative_pose
 from polargs_plugin.densify.ncc import (
     MAX_COST,
     MIN_VARIANCE,
@@ -55,6 +55,7 @@ from polargs_plugin.densify.ncc import (
     reference_windows,
     window_offsets,
 )
+from polargs_plugin.geometry import ray_plane_depth, ray_plane_distance
 from polargs_plugin.optics.azimuth import (
     azimuth_candidates,
     dolp_weight,
@@ -185,7 +186,7 @@ class _Problem:
     def photometric(self, idx: Tensor, depth: Tensor, normal: Tensor) -> Tensor:
         """(P, M) S_c for hypotheses ``depth`` (P, M), ``normal`` (P, M, 3) at flat ``idx``."""
         rays = self.rays.reshape(3, -1).T[idx]  # (P, 3)
-        d_plane = plane_distance(depth, normal, rays[:, None, :])
+        d_plane = ray_plane_distance(depth, normal, rays[:, None, :])
         m = -torch.einsum("ij,pmi->pmj", self.K_inv, normal) / d_plane[..., None]
         cost = bilateral_ncc_cost(
             self.sources, self.A, self.b, self.pixels[idx], 1.0 / depth, m[..., :2].contiguous(),
@@ -482,7 +483,7 @@ def _propagation_candidates(prob: _Problem, state, active: Tensor, cfg: PatchMat
     depth, normal, _, total = state
     h, w = prob.h, prob.w
     rays_hw = prob.rays.permute(1, 2, 0)
-    d_plane = plane_distance(depth, normal.permute(1, 2, 0), rays_hw)
+    d_plane = ray_plane_distance(depth, normal.permute(1, 2, 0), rays_hw)
     cost = torch.where(active, total, torch.full_like(total, math.inf))
     r = max(cfg.propagation_distances)
     # one padded copy; every neighbour offset is then a view (no per-offset allocation)
@@ -495,7 +496,7 @@ def _propagation_candidates(prob: _Problem, state, active: Tensor, cfg: PatchMat
         best, pick = costs.min(0, keepdim=True)
         planes = torch.stack([plane_p[:, y : y + h, x : x + w] for y, x in win])  # (K, 4, H, W)
         plane = planes.gather(0, pick[:, None].expand(1, 4, -1, -1))[0]
-        d_p = depth_from_plane(plane[:3].permute(1, 2, 0), plane[3], rays_hw)
+        d_p = ray_plane_depth(plane[3], plane[:3].permute(1, 2, 0), rays_hw)
         depths.append(torch.where(torch.isfinite(best[0]), d_p, torch.full_like(d_p, math.nan)))
         normals.append(plane[:3])
     return torch.stack(depths), torch.stack(normals)

@@ -4,9 +4,9 @@ Pipeline: projection (EWA, differentiable) -> :func:`~.binning.bin_gaussians` (n
 sort) -> compositing, either the exact pure-torch two-pass path (:mod:`.composite_torch`, any
 device) or the compiled CPU kernel (:mod:`.composite_numba`, same rule, hand-written backward).
 The compositing rule is stated in :mod:`.composite_torch`. The projection and SH colour are
-:func:`~.projection.project_gaussians` and :func:`~.projection.eval_sh` (torch, the reference and
-the CUDA path) or, on the numba path, the compiled :func:`~.projection_numba.project_numba` (same
-outputs, hand-written backward).
+:func:`~.projection.project_gaussians` and :func:`~polargs_plugin.geometry.eval_sh` (torch, the
+reference and the CUDA path) or, on the numba path, the compiled
+:func:`~.projection_numba.project_numba` (same outputs, hand-written backward).
 """
 
 from __future__ import annotations
@@ -16,10 +16,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from ...geometry import depth_from_plane, eval_sh, plane_distances
 from ...types import RenderOut
 from .binning import bin_gaussians
 from .composite_torch import composite_torch
-from .projection import DEFAULT_EPS2D, depth_from_plane, eval_sh, plane_distances, project_gaussians
+from .projection import DEFAULT_EPS2D, project_gaussians
 
 __all__ = ["rasterize", "resolve_backend"]
 
@@ -92,7 +93,7 @@ def rasterize(
         projection: how the numba path projects and evaluates SH: "auto"/"numba" with the
             compiled kernel of :mod:`.projection_numba` ("auto" falls back to torch when K or
             world_to_camera require grad, which that kernel does not give), "torch" with
-            :func:`~.projection.project_gaussians` + :func:`~.projection.eval_sh` and their autograd
+            :func:`~.projection.project_gaussians` + :func:`~polargs_plugin.geometry.eval_sh` and their autograd
             graph (the path before the compiled projection, kept for comparison; same results to
             float rounding). The torch compositing path always projects in torch.
         with_plane_depth: also composite each Gaussian's plane distance and return
