@@ -170,13 +170,6 @@ def render_out_from_gsplat(
     return render_out_from_aux(image[:rgb_channels], image[rgb_channels : rgb_channels + NUM_AUX], K=K)
 
 
-def _detached(render: RenderOut) -> RenderOut:
-    return dataclasses.replace(
-        render,
-        **{f.name: getattr(render, f.name).detach() for f in dataclasses.fields(render) if isinstance(getattr(render, f.name), Tensor)},
-    )
-
-
 def polar_loss(
     hooks: TrainingHooks,
     step: int,
@@ -209,7 +202,7 @@ def polar_loss(
     extra, logs = hooks.loss(step + 1, view, render, gaussian_state(params))
     if info is not None:
         info["polar_view"] = view
-        info["polar_render"] = _detached(render)
+        info["polar_render"] = render.detached()
     return extra, logs
 
 
@@ -258,6 +251,6 @@ def make_render_fn(
                 sh_degree=None, backgrounds=backgrounds, **raster_kwargs,
             )
             render = render_out_from_gsplat(render_colors, render_alphas, rgb_channels=rgb.shape[-1], K=view.K)
-            return dataclasses.replace(_detached(render), color=render.color.clamp(0, 1))
+            return dataclasses.replace(render.detached(), color=render.color.clamp(0, 1))
 
     return render_fn
