@@ -110,17 +110,39 @@ def project_gaussians(
     axes_c = rot_w2c @ quat_to_rotmat(quats)  # (N, 3, 3), columns = axes in the camera frame
     rs = axes_c * scales[:, None, :]
     cov_c = rs @ rs.transpose(-1, -2)
+    a, b, c = _screen_covariance(cov_c, x, y, z_safe, (fx, skew, cx, fy, cy), width, height, eps2d)
+    det = a * c - b * b
+    conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+    extents = _extents(opacities, a, c, det, in_range)
+    normals = shortest_axis_normals(axes_c, scales, mean_c)
+    ray_coeffs, ray_offsets, depth_bounds = _ray_depth_data(axes_c, scales, cov_c, mean_c, z_safe, in_range, K)
+    return Projection(means2d, conics, z_safe, normals, ray_coeffs, ray_offsets, depth_bounds, extents)
 
+
+def _screen_covariance(
+    cov_c: Tensor,
+    x: Tensor,
+    y: Tensor,
+    z: Tensor,
+    intrinsics: tuple[Tensor, Tensor, Tensor, Tensor, Tensor],
+    width: int,
+    height: int,
+    eps2d: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Entries (a, b, c) of the dilated screen covariance [[a, b], [b, c]] = J cov_c J^T +
+    eps2d I, J the EWA Jacobian of the pinhole projection at the camera-frame mean (x, y, z);
+    ``intrinsics`` = (fx, skew, cx, fy, cy), the entries of K."""
+    fx, skew, cx, fy, cy = intrinsics
     # The Jacobian is evaluated with x/z, y/z limited to 1.3x the field of view, as in 3DGS,
     # so that Gaussians far outside the image do not get absurd footprints.
     lim_x_hi = FOV_CLAMP * (width - cx) / fx
     lim_x_lo = -FOV_CLAMP * cx / fx
     lim_y_hi = FOV_CLAMP * (height - cy) / fy
     lim_y_lo = -FOV_CLAMP * cy / fy
-    xz = torch.minimum(torch.maximum(x / z_safe, lim_x_lo), lim_x_hi)
-    yz = torch.minimum(torch.maximum(y / z_safe, lim_y_lo), lim_y_hi)
-    zero = torch.zeros_like(z_safe)
-    inv_z = 1.0 / z_safe
+    xz = torch.minimum(torch.maximum(x / z, lim_x_lo), lim_x_hi)
+    yz = torch.minimum(torch.maximum(y / z, lim_y_lo), lim_y_hi)
+    zero = torch.zeros_like(z)
+    inv_z = 1.0 / z
     jac = torch.stack(
         [
             fx * inv_z, skew * inv_z, -(fx * xz + skew * yz) * inv_z,
@@ -129,24 +151,28 @@ def project_gaussians(
         dim=-1,
     ).reshape(-1, 2, 3)
     cov2d = jac @ cov_c @ jac.transpose(-1, -2)
-    a = cov2d[:, 0, 0] + eps2d
-    b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + eps2d
-    det = a * c - b * b
-    conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+    return cov2d[:, 0, 0] + eps2d, cov2d[:, 0, 1], cov2d[:, 1, 1] + eps2d
 
-    # Opacity-aware extent: alpha >= 1/255 needs d^T conic d <= 2 ln(255 o), an ellipse whose
-    # axis-aligned bounding box has half-widths sqrt(2 ln(255 o) cov_xx), sqrt(2 ln(255 o) cov_yy).
-    # The 1e-4 relative slack keeps pixels exactly on the boundary despite rounding.
-    with torch.no_grad():
-        log_ratio = torch.log(opacities.detach().clamp_min(1e-30) / ALPHA_MIN).clamp_min(0.0)
-        extents = (1 + EXTENT_SLACK) * torch.sqrt(2.0 * log_ratio[:, None] * torch.stack([a, c], dim=-1).detach())
-        keep = in_range & (log_ratio > 0) & (det > 0)
-        extents = torch.where(keep[:, None], extents, torch.zeros_like(extents))
 
-    normals = shortest_axis_normals(axes_c, scales, mean_c)
+@torch.no_grad()
+def _extents(opacities: Tensor, a: Tensor, c: Tensor, det: Tensor, in_range: Tensor) -> Tensor:
+    """(N, 2) opacity-aware half-widths of the box where alpha >= 1/255; 0 for culled Gaussians.
 
-    # Per-pixel depth data: Q = diag(s_min / s) R_c^T K^-1, b = diag(s_min / s) R_c^T mu_c.
+    alpha >= 1/255 needs d^T conic d <= 2 ln(255 o), an ellipse whose axis-aligned bounding box
+    has half-widths sqrt(2 ln(255 o) cov_xx), sqrt(2 ln(255 o) cov_yy). The 1e-4 relative slack
+    keeps pixels exactly on the boundary despite rounding."""
+    log_ratio = torch.log(opacities.detach().clamp_min(1e-30) / ALPHA_MIN).clamp_min(0.0)
+    extents = (1 + EXTENT_SLACK) * torch.sqrt(2.0 * log_ratio[:, None] * torch.stack([a, c], dim=-1).detach())
+    keep = in_range & (log_ratio > 0) & (det > 0)
+    return torch.where(keep[:, None], extents, torch.zeros_like(extents))
+
+
+def _ray_depth_data(
+    axes_c: Tensor, scales: Tensor, cov_c: Tensor, mean_c: Tensor, z: Tensor, in_range: Tensor, K: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-pixel depth data of :class:`Projection`: ray_coeffs Q = diag(s_min / s) R_c^T K^-1,
+    ray_offsets b = diag(s_min / s) R_c^T mu_c and the +-DEPTH_CLAMP_SIGMAS sigma_z bounds around
+    the (culling-safe) mean z."""
     # Dividing by s_min keeps the numbers O(1) for very flat Gaussians; the ratio is unchanged.
     rel_inv_scale = scales.min(dim=-1, keepdim=True).values / scales
     m = axes_c.transpose(-1, -2) * rel_inv_scale[..., None]
@@ -154,7 +180,5 @@ def project_gaussians(
     mean_c_safe = torch.where(in_range[:, None], mean_c, torch.ones_like(mean_c))
     ray_offsets = (m @ mean_c_safe[..., None])[..., 0]
     sigma_z = torch.sqrt(cov_c[:, 2, 2].clamp_min(1e-30))
-    depth_bounds = torch.stack(
-        [z_safe - DEPTH_CLAMP_SIGMAS * sigma_z, z_safe + DEPTH_CLAMP_SIGMAS * sigma_z], dim=-1
-    )
-    return Projection(means2d, conics, z_safe, normals, ray_coeffs, ray_offsets, depth_bounds, extents)
+    depth_bounds = torch.stack([z - DEPTH_CLAMP_SIGMAS * sigma_z, z + DEPTH_CLAMP_SIGMAS * sigma_z], dim=-1)
+    return ray_coeffs, ray_offsets, depth_bounds

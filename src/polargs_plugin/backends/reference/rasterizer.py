@@ -18,9 +18,9 @@ from torch import Tensor
 
 from ...geometry import depth_from_plane, eval_sh, plane_distances
 from ...types import RenderOut
-from .binning import bin_gaussians
-from .composite_torch import composite_torch
-from .projection import DEFAULT_EPS2D, project_gaussians
+from .binning import TileBins, bin_gaussians
+from .composite_torch import Composite, composite_torch
+from .projection import DEFAULT_EPS2D, Projection, project_gaussians
 
 __all__ = ["rasterize", "resolve_backend"]
 
@@ -124,35 +124,14 @@ def rasterize(
         - radii (N,) int64 opacity-aware screen radius in pixels (larger half-width of the box
           bounding alpha >= 1/255), 0 = culled by near/far or off-screen.
     """
-    n = means.shape[0]
-    if means.shape != (n, 3) or quats.shape != (n, 4) or scales.shape != (n, 3) or opacities.shape != (n,):
-        raise ValueError(
-            "expected means (N,3), quats (N,4), scales (N,3), opacities (N,); got "
-            f"{tuple(means.shape)}, {tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(opacities.shape)}"
-        )
-    if colors.shape[0] != n or colors.shape[-1] != 3 or colors.dim() not in (2, 3):
-        raise ValueError(f"colors must be (N,3) or (N,K,3) with N={n}, got {tuple(colors.shape)}")
+    _check_gaussians(means, quats, scales, opacities, colors)
     path = resolve_backend(backend, means.device)
-    if projection not in ("auto", "torch", "numba"):
-        raise ValueError(f"projection must be 'auto', 'torch' or 'numba', got {projection!r}")
-    if projection == "numba" and path != "numba":
-        raise ValueError("projection='numba' needs the numba compositing path (backend 'numba'/'auto' on CPU)")
     camera_grad = K.requires_grad or world_to_camera.requires_grad
-    if projection == "numba" and camera_grad:
-        raise ValueError("projection='numba' gives no gradient to K / world_to_camera; use projection='torch'")
-
-    if path == "numba" and projection != "torch" and not camera_grad:
-        from .projection_numba import project_numba
-
-        proj, colors = project_numba(
-            means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far, eps2d
-        )
-    else:
-        proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far, eps2d)
-        if colors.dim() == 3:
-            w2c = world_to_camera.to(means)
-            camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
-            colors = eval_sh(colors, means - camera_center)
+    _check_projection(projection, path, camera_grad)
+    compiled = path == "numba" and projection != "torch" and not camera_grad
+    proj, colors = _project(
+        means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far, eps2d, compiled
+    )
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
@@ -165,7 +144,66 @@ def rasterize(
         comp = composite_numba(proj, opacities, colors, bins, width, height, distances)
     else:
         comp = composite_torch(proj, opacities, colors, bins, width, height, distances)
+    return _render_out(comp, proj, bins, background, K.to(means) if with_plane_depth else None)
 
+
+def _check_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor) -> None:
+    """ValueError naming the shapes unless they are those :func:`rasterize` documents."""
+    n = means.shape[0]
+    if means.shape != (n, 3) or quats.shape != (n, 4) or scales.shape != (n, 3) or opacities.shape != (n,):
+        raise ValueError(
+            "expected means (N,3), quats (N,4), scales (N,3), opacities (N,); got "
+            f"{tuple(means.shape)}, {tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(opacities.shape)}"
+        )
+    if colors.shape[0] != n or colors.shape[-1] != 3 or colors.dim() not in (2, 3):
+        raise ValueError(f"colors must be (N,3) or (N,K,3) with N={n}, got {tuple(colors.shape)}")
+
+
+def _check_projection(projection: ProjectionPath, path: str, camera_grad: bool) -> None:
+    """ValueError unless ``projection`` is possible with compositing ``path`` (see :func:`rasterize`)."""
+    if projection not in ("auto", "torch", "numba"):
+        raise ValueError(f"projection must be 'auto', 'torch' or 'numba', got {projection!r}")
+    if projection == "numba" and path != "numba":
+        raise ValueError("projection='numba' needs the numba compositing path (backend 'numba'/'auto' on CPU)")
+    if projection == "numba" and camera_grad:
+        raise ValueError("projection='numba' gives no gradient to K / world_to_camera; use projection='torch'")
+
+
+def _project(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    K: Tensor,
+    world_to_camera: Tensor,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    eps2d: float,
+    compiled: bool,
+) -> tuple[Projection, Tensor]:
+    """The projection and the per-Gaussian RGB (SH evaluated towards this camera), by the
+    compiled kernel or in torch."""
+    if compiled:
+        from .projection_numba import project_numba
+
+        return project_numba(
+            means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far, eps2d
+        )
+    proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far, eps2d)
+    if colors.dim() == 3:
+        w2c = world_to_camera.to(means)
+        camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
+        colors = eval_sh(colors, means - camera_center)
+    return proj, colors
+
+
+def _render_out(
+    comp: Composite, proj: Projection, bins: TileBins, background: Tensor | None, plane_K: Tensor | None
+) -> RenderOut:
+    """The composited sums as a :class:`RenderOut`; the plane depth with intrinsics ``plane_K``."""
     color = comp.color
     if background is not None:
         color = color + (1.0 - comp.alpha) * background.to(color).reshape(3, 1, 1)
@@ -179,7 +217,7 @@ def rasterize(
         normal=comp.normal,
         alpha=comp.alpha,
         median_depth=comp.median_depth,
-        plane_depth=depth_from_plane(comp.distance, comp.normal, K.to(means)) if with_plane_depth else None,
-        means2d=means2d,
+        plane_depth=None if plane_K is None else depth_from_plane(comp.distance, comp.normal, plane_K),
+        means2d=proj.means2d,
         radii=radii,
     )
