@@ -128,10 +128,15 @@ def rasterize(
     path = resolve_backend(backend, means.device)
     camera_grad = K.requires_grad or world_to_camera.requires_grad
     _check_projection(projection, path, camera_grad)
-    compiled = path == "numba" and projection != "torch" and not camera_grad
-    proj, colors = _project(
-        means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far, eps2d, compiled
-    )
+    if path == "numba" and projection != "torch" and not camera_grad:
+        from .projection_numba import project_numba
+
+        proj, colors = project_numba(
+            means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far, eps2d
+        )
+    else:
+        proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far, eps2d)
+        colors = _view_colors(colors, means, world_to_camera)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
@@ -169,35 +174,13 @@ def _check_projection(projection: ProjectionPath, path: str, camera_grad: bool) 
         raise ValueError("projection='numba' gives no gradient to K / world_to_camera; use projection='torch'")
 
 
-def _project(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    K: Tensor,
-    world_to_camera: Tensor,
-    width: int,
-    height: int,
-    near: float,
-    far: float,
-    eps2d: float,
-    compiled: bool,
-) -> tuple[Projection, Tensor]:
-    """The projection and the per-Gaussian RGB (SH evaluated towards this camera), by the
-    compiled kernel or in torch."""
-    if compiled:
-        from .projection_numba import project_numba
-
-        return project_numba(
-            means, quats, scales, opacities, colors, K, world_to_camera, width, height, near, far, eps2d
-        )
-    proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far, eps2d)
-    if colors.dim() == 3:
-        w2c = world_to_camera.to(means)
-        camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
-        colors = eval_sh(colors, means - camera_center)
-    return proj, colors
+def _view_colors(colors: Tensor, means: Tensor, world_to_camera: Tensor) -> Tensor:
+    """Per-Gaussian RGB: ``colors`` (N, 3) as they are, (N, K, 3) SH evaluated towards the camera."""
+    if colors.dim() != 3:
+        return colors
+    w2c = world_to_camera.to(means)
+    camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
+    return eval_sh(colors, means - camera_center)
 
 
 def _render_out(
