@@ -72,11 +72,12 @@ def _naive_cost(gray_ref, sources, K_ref, Ks, Rs, ts, u, v, depth, normal, radiu
     """One pixel, one hypothesis, all sources: plain Python loops (the reference)."""
     import torch
 
-    from polargs_plugin.densify.homography import plane_distance, plane_homography
+    from polargs_plugin.densify.homography import plane_homography
+    from polargs_plugin.geometry import ray_plane_distance
 
     ray = torch.linalg.inv(K_ref) @ torch.tensor([u + 0.5, v + 0.5, 1.0], dtype=torch.float64)
     n = normal.double()
-    dpl = plane_distance(torch.tensor(float(depth), dtype=torch.float64), n, ray)
+    dpl = ray_plane_distance(torch.tensor(float(depth), dtype=torch.float64), n, ray)
     h, w = len(gray_ref), len(gray_ref[0])
     costs = []
     for s in range(len(sources)):

@@ -44,8 +44,9 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from polargs_plugin.backends.reference.composite_torch import ALPHA_MAX, T_MIN
-from polargs_plugin.backends.reference.projection import ALPHA_MIN, eval_sh, project_gaussians
+from polargs_plugin.backends.reference.projection import ALPHA_MIN, project_gaussians
 from polargs_plugin.backends.reference.rasterizer import rasterize
+from polargs_plugin.geometry import eval_sh
 
 BACKENDS = ("naive", "torch", "numba", "numba_tproj", "numba_ref")
 DEFAULT_CONFIGS = "12000:256x256,6000:128x128:sh3"

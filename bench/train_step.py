@@ -210,7 +210,7 @@ def legacy_trainer_class(reference: bool):
             with torch.no_grad():
                 refined = self.density.step(model, it)
                 if self.hooks is not None:
-                    new = self.hooks.densify(it, view, self.render, model.state(), render=tr._detached(render))
+                    new = self.hooks.densify(it, view, self.render, model.state(), render=render.detached())
                     if new is not None and len(new) > 0:
                         model.append(new)
                         self.density.pad(len(new))

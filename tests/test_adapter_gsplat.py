@@ -38,7 +38,8 @@ from polargs_adapters.gsplat import (  # noqa: E402
 from polargs_plugin import PolarConfig, PolarHooks  # noqa: E402
 from polargs_plugin.backends.reference.binning import bin_gaussians  # noqa: E402
 from polargs_plugin.backends.reference.composite_torch import composite_torch  # noqa: E402
-from polargs_plugin.backends.reference.projection import eval_sh, project_gaussians  # noqa: E402
+from polargs_plugin.backends.reference.projection import project_gaussians  # noqa: E402
+from polargs_plugin.geometry import eval_sh  # noqa: E402
 from polargs_plugin.backends.reference.rasterizer import rasterize, resolve_backend  # noqa: E402
 from polargs_plugin.kit import logit, rgb_to_sh  # noqa: E402
 from polargs_plugin.losses import photometric_loss  # noqa: E402

@@ -12,10 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-import torch
 
 from polargs_plugin.cli import _COMMANDS, build_parser, main
 from polargs_plugin.data.polar_folder import write_polar_folder

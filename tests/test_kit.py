@@ -28,7 +28,7 @@ from polargs_plugin.kit import (
     view_from_graphdeco,
     world_view_transform,
 )
-from polargs_plugin.types import NewGaussians, TrainingHooks, View
+from polargs_plugin.types import NewGaussians, RenderOut, TrainingHooks, View
 
 F64 = torch.float64
 
@@ -144,6 +144,19 @@ def test_depth_from_plane_is_the_ray_plane_intersection(pixel_center: float) -> 
 
 
 # ------------------------------------------------------------------------------------ cameras
+def test_render_out_detached_drops_the_graph_and_shares_the_storage() -> None:
+    x = torch.rand(4, 2, 3, requires_grad=True)
+    render = RenderOut(color=x[:3] * 2, depth=x[3:] + 1, normal=-x[:3], alpha=x[3:].sigmoid(), radii=torch.ones(5))
+    detached = render.detached()
+    for name in ("color", "depth", "normal", "alpha", "radii"):
+        got, want = getattr(detached, name), getattr(render, name)
+        assert got.grad_fn is None and not got.requires_grad
+        assert got.data_ptr() == want.data_ptr() and torch.equal(got, want)
+    assert detached.median_depth is None and detached.plane_depth is None and detached.means2d is None
+    render.color.sum().backward()  # the original keeps its graph
+    assert torch.equal(x.grad[:3], torch.full((3, 2, 3), 2.0))
+
+
 def test_graphdeco_camera_round_trip_and_its_own_projection() -> None:
     width, height = 40, 30
     fov_x, fov_y = 0.9, 0.7

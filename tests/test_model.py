@@ -8,15 +8,13 @@ import torch
 
 from polargs_plugin.backends.reference.model import (
     PARAM_NAMES,
-    SH_C0,
     GaussianModel,
     LearningRates,
     exponential_lr,
     init_points_from_masks,
-    rgb_to_sh,
     scene_extent,
-    sh_to_rgb,
 )
+from polargs_plugin.geometry import SH_C0, rgb_to_sh, sh_to_rgb
 from polargs_plugin.types import NewGaussians, View
 
 

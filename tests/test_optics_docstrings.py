@@ -1,4 +1,4 @@
-"""Every docstring example of optics/, viz, config, losses and the fused L_dn, run one by one."""
+"""Every docstring example of optics/, geometry, viz, config, losses and the fused L_dn, run one by one."""
 
 import doctest
 
@@ -6,6 +6,7 @@ import pytest
 
 import polargs_plugin.config
 import polargs_plugin.depth_normal
+import polargs_plugin.geometry
 import polargs_plugin.losses
 import polargs_plugin.reflective_window
 import polargs_plugin.optics.azimuth
@@ -21,6 +22,7 @@ MODULES = [
     polargs_plugin.optics.mosaic,
     polargs_plugin.optics.pattern,
     polargs_plugin.optics.stokes,
+    polargs_plugin.geometry,
     polargs_plugin.viz,
 ]
 # Modules whose examples run too, without an example required of every public name.

@@ -4,13 +4,8 @@ import math
 
 import torch
 
-from polargs_plugin.densify.homography import (
-    depth_from_plane,
-    pixel_rays,
-    plane_distance,
-    plane_homography,
-    relative_pose,
-)
+from polargs_plugin.densify.homography import pixel_rays, plane_homography, relative_pose
+from polargs_plugin.geometry import ray_plane_depth, ray_plane_distance
 from test_patchmatch_scenes import intrinsics, look_at
 
 
@@ -42,7 +37,7 @@ def test_plane_homography_transfers_pixels_of_the_plane():
         normal = torch.nn.functional.normalize(
             torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64) + 0.3 * torch.randn(3, generator=g, dtype=torch.float64), dim=0)
         ray = rays[:, v, u]
-        d_plane = plane_distance(depth, normal, ray)
+        d_plane = ray_plane_distance(depth, normal, ray)
         assert d_plane > 0  # facing normal -> positive camera-to-plane distance
         H = plane_homography(K_ref, K_src, R, t, normal, d_plane)
         # another pixel q: intersect its ray with the plane through X_p, project explicitly
@@ -54,8 +49,8 @@ def test_plane_homography_transfers_pixels_of_the_plane():
         expected = proj[:2] / proj[2]
         mapped = H @ q
         assert torch.allclose(mapped[:2] / mapped[2], expected, atol=1e-9)
-        # the plane depth at q from depth_from_plane agrees with the explicit intersection
-        assert math.isclose(float(depth_from_plane(normal, d_plane, ray_q)), float(x_q[2]), rel_tol=1e-12)
+        # the plane depth at q from ray_plane_depth agrees with the explicit intersection
+        assert math.isclose(float(ray_plane_depth(d_plane, normal, ray_q)), float(x_q[2]), rel_tol=1e-12)
 
 
 def test_pixel_rays_have_unit_z_and_pixel_centres_at_half():

@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from polargs_plugin.densify.homography import pixel_rays, plane_distance, relative_pose
+from polargs_plugin.densify.homography import pixel_rays, relative_pose
+from polargs_plugin.geometry import ray_plane_distance
 from polargs_plugin.densify.ncc import (
     MAX_COST,
     bilateral_ncc_cost,
@@ -33,7 +34,7 @@ def _setup(size=40):
 def _hypotheses(ref, depth, normal, idx):
     """(1/d, m_xy) of hypotheses depth (P, M), normal (P, M, 3) at flat pixels idx."""
     rays = pixel_rays(ref.K, ref.height, ref.width).float().reshape(3, -1).T[idx]
-    d_plane = plane_distance(depth, normal, rays[:, None])
+    d_plane = ray_plane_distance(depth, normal, rays[:, None])
     m = -torch.einsum("ij,pmi->pmj", torch.linalg.inv(ref.K).float(), normal) / d_plane[..., None]
     return 1.0 / depth, m[..., :2].contiguous()
 

@@ -8,7 +8,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from polargs_plugin.backends.reference.projection import Projection, eval_sh, project_gaussians
+from polargs_plugin.backends.reference.projection import Projection, project_gaussians
+from polargs_plugin.geometry import eval_sh
 from polargs_plugin.backends.reference.projection_numba import project_numba
 from polargs_plugin.backends.reference.rasterizer import rasterize
 
@@ -215,15 +216,18 @@ def test_compositing_unchanged_by_footprint_boxes(dtype: torch.dtype) -> None:
 @pytest.mark.parametrize("tile_size", [4, 16])
 def test_cpu_tile_lists_equal_sorted_pairs(tile_size: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """bin_gaussians on CPU fills the tile lists by counting; the lists equal the torch sort's."""
-    from polargs_plugin.backends.reference import composite_numba
+    from polargs_plugin.backends.reference import binning
     from polargs_plugin.backends.reference.binning import bin_gaussians
 
     width, height = 37, 29  # not a multiple of the tile size
     (means, quats, scales, opac, colors), K, w2c = _random_scene(300, width, height, seed=12)
     proj = project_gaussians(means, quats, scales, opac, K, w2c, width, height)
     args = (proj.means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
+    counting, calls = binning.counted_tile_lists, []
+    monkeypatch.setattr(binning, "counted_tile_lists", lambda *a: calls.append(a) or counting(*a))
     counted = bin_gaussians(*args)
-    monkeypatch.delattr(composite_numba, "tile_lists")  # the import fails: the torch sort path
+    assert len(calls) == 1  # the CPU path counts
+    monkeypatch.setattr(binning, "counted_tile_lists", binning.sorted_tile_lists)  # the sort path
     ref = bin_gaussians(*args)
     assert counted.gauss_ids.shape[0] > 300 and not counted.visible.all() and counted.visible.any()
     for got, want in zip(counted, ref):

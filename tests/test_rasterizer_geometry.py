@@ -11,8 +11,8 @@ import torch
 from scipy.spatial.transform import Rotation
 from scipy.special import sph_harm_y
 
-from polargs_plugin.backends.reference.projection import eval_sh, rgb_to_sh
 from polargs_plugin.backends.reference.rasterizer import rasterize, resolve_backend
+from polargs_plugin.geometry import eval_sh, rgb_to_sh
 
 BACKENDS = ["torch", "numba"]
 F64 = torch.float64

@@ -31,6 +31,7 @@ from typing import Any, Callable, Mapping
 import torch
 from torch import Tensor
 
+from polargs_plugin.geometry import eval_sh
 from polargs_plugin.kit import AUX_CHANNELS, aux_channels, render_out_from_aux, state_from_raw
 from polargs_plugin.types import GaussianState, RenderOut, TrainingHooks, View
 
@@ -82,8 +83,8 @@ def sh_colors(params: Mapping[str, Tensor], viewmats: Tensor, sh_degree: int | N
     computes them internally (``clamp_min(SH(dir) + 0.5, 0)``, dir = mean - camera centre).
 
     Needed because the extra PolarGS channels only fit with ``sh_degree=None``. On CUDA this is
-    ``gsplat.spherical_harmonics``; on CPU (gsplat's is CUDA-only) the reference backend's
-    ``eval_sh``, the same real SH basis (3DGS convention).
+    ``gsplat.spherical_harmonics``; on CPU (gsplat's is CUDA-only)
+    :func:`polargs_plugin.geometry.eval_sh`, the same real SH basis (3DGS convention).
 
     Args:
         params: gsplat parameters with ``means``, ``sh0`` and (optionally) ``shN``.
@@ -107,8 +108,6 @@ def sh_colors(params: Mapping[str, Tensor], viewmats: Tensor, sh_degree: int | N
         from gsplat import spherical_harmonics
 
         return torch.clamp_min(spherical_harmonics(degree, dirs, coeffs) + 0.5, 0.0)
-    from polargs_plugin.backends.reference.projection import eval_sh
-
     return eval_sh(coeffs[:, : (degree + 1) ** 2], dirs)
 
 
@@ -171,13 +170,6 @@ def render_out_from_gsplat(
     return render_out_from_aux(image[:rgb_channels], image[rgb_channels : rgb_channels + NUM_AUX], K=K)
 
 
-def _detached(render: RenderOut) -> RenderOut:
-    return dataclasses.replace(
-        render,
-        **{f.name: getattr(render, f.name).detach() for f in dataclasses.fields(render) if isinstance(getattr(render, f.name), Tensor)},
-    )
-
-
 def polar_loss(
     hooks: TrainingHooks,
     step: int,
@@ -211,7 +203,7 @@ def polar_loss(
     extra, logs = hooks.loss(step + 1, view, render, gaussian_state(params))
     if info is not None:
         info["polar_view"] = view
-        info["polar_render"] = _detached(render)
+        info["polar_render"] = render.detached()
     return extra, logs
 
 
@@ -260,6 +252,6 @@ def make_render_fn(
                 sh_degree=None, backgrounds=backgrounds, **raster_kwargs,
             )
             render = render_out_from_gsplat(render_colors, render_alphas, rgb_channels=rgb.shape[-1], K=view.K)
-            return dataclasses.replace(_detached(render), color=render.color.clamp(0, 1))
+            return dataclasses.replace(render.detached(), color=render.color.clamp(0, 1))
 
     return render_fn

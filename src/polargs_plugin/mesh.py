@@ -148,77 +148,18 @@ def tsdf_fuse(
         was observed.
     """
     num = len(depths)
-    for name, seq in (("colors", colors), ("Ks", Ks), ("world_to_cameras", world_to_cameras)):
-        if len(seq) != num:
-            raise ValueError(f"tsdf_fuse: {num} depth maps but {len(seq)} {name}")
-    if masks is not None and len(masks) != num:
-        raise ValueError(f"tsdf_fuse: {num} depth maps but {len(masks)} masks")
-    if alpha_threshold is not None and (alphas is None or len(alphas) != num):
-        raise ValueError("tsdf_fuse: alpha_threshold needs one alpha map per depth map")
+    _check_fusion_inputs(num, colors, Ks, world_to_cameras, masks, alphas, alpha_threshold)
     _check_lengths(voxel_size=voxel_size, sdf_trunc=sdf_trunc, depth_trunc=depth_trunc)
-
-    grid = o3d.t.geometry.VoxelBlockGrid(
-        attr_names=("tsdf", "weight", "color"),
-        attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
-        attr_channels=(1, 1, 3),
-        voxel_size=float(voxel_size),
-        block_resolution=8,
-        block_count=10_000,  # initial capacity; the CPU hash map grows as needed
-        device=o3c.Device("CPU:0"),
-    )
+    grid = _voxel_grid(voxel_size)
     trunc_multiplier = float(sdf_trunc) / float(voxel_size)
     integrated = 0
     from tqdm import tqdm
 
     for i in tqdm(range(num), desc="TSDF fusion", unit="view", disable=not progress):
-        depth = _numpy(depths[i], np.float32)
-        if depth.ndim != 3 or depth.shape[0] != 1:
-            raise ValueError(f"tsdf_fuse: depth {i} must be (1, H, W), got {depth.shape}")
-        depth = depth[0].copy()
-        height, width = depth.shape
-        color = _numpy(colors[i], np.float32)
-        if color.shape != (3, height, width):
-            raise ValueError(f"tsdf_fuse: colour {i} must be (3, {height}, {width}), got {color.shape}")
-        invalid = ~np.isfinite(depth) | (depth <= 0) | (depth > depth_trunc)
-        if masks is not None and masks[i] is not None:
-            mask = _numpy(masks[i], bool)
-            if mask.shape != (1, height, width):
-                raise ValueError(f"tsdf_fuse: mask {i} must be (1, {height}, {width}), got {mask.shape}")
-            invalid |= ~mask[0]
-        if alpha_threshold is not None:
-            alpha = _numpy(alphas[i], np.float32)
-            if alpha.shape != (1, height, width):
-                raise ValueError(f"tsdf_fuse: alpha {i} must be (1, {height}, {width}), got {alpha.shape}")
-            invalid |= alpha[0] < alpha_threshold
-        if invalid.all():
+        view = _measured_view(i, depths, colors, masks, alphas, alpha_threshold, depth_trunc)
+        if view is None:
             continue  # open3d refuses a frame that touches no block
-        depth[invalid] = 0.0
-        extrinsic = _numpy(world_to_cameras[i], np.float64)
-        if extrinsic.shape != (4, 4):
-            raise ValueError(f"tsdf_fuse: world_to_camera {i} must be (4, 4), got {extrinsic.shape}")
-        depth_image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth[..., None])))
-        color_image = o3d.t.geometry.Image(
-            o3c.Tensor(np.ascontiguousarray(np.clip(np.nan_to_num(color), 0.0, 1.0).transpose(1, 2, 0)))
-        )
-        # The integration kernel reads pixel floor(u), floor(v) of the projection (u, v), i.e.
-        # pixel (u, v) spans [u, u + 1): the package's +0.5 pixel-centre K applies unchanged.
-        k = _numpy(Ks[i], np.float64)
-        if k.shape != (3, 3):
-            raise ValueError(f"tsdf_fuse: K {i} must be (3, 3), got {k.shape}")
-        intrinsic = o3c.Tensor(np.ascontiguousarray(k))
-        extrinsic = o3c.Tensor(np.ascontiguousarray(extrinsic))
-        # open3d allocates blocks within the truncation distance of each pixel's 3D point; when a
-        # pixel covers more than that, blocks between neighbouring pixels would stay unallocated
-        # and the mesh would come out in fragments. Touch at least one pixel footprint.
-        footprint = float(depth[~invalid].max()) / float(min(k[0, 0], k[1, 1]))
-        blocks = grid.compute_unique_block_coordinates(
-            depth_image, intrinsic, extrinsic, 1.0, float(depth_trunc),
-            trunc_voxel_multiplier=max(trunc_multiplier, 2.0 * footprint / float(voxel_size)),
-        )
-        grid.integrate(
-            blocks, depth_image, color_image, intrinsic, intrinsic, extrinsic, 1.0, float(depth_trunc),
-            trunc_voxel_multiplier=trunc_multiplier,
-        )
+        _integrate(grid, i, *view, Ks[i], world_to_cameras[i], voxel_size, trunc_multiplier, depth_trunc)
         integrated += 1
 
     if integrated == 0:
@@ -230,6 +171,101 @@ def tsdf_fuse(
         keep_largest_cluster(mesh, 1.0 if keep_largest is True else float(keep_largest))
     mesh.compute_vertex_normals()
     return mesh
+
+
+def _check_fusion_inputs(num: int, colors, Ks, world_to_cameras, masks, alphas, alpha_threshold) -> None:
+    """ValueError unless every per-view sequence of :func:`tsdf_fuse` has ``num`` entries."""
+    for name, seq in (("colors", colors), ("Ks", Ks), ("world_to_cameras", world_to_cameras)):
+        if len(seq) != num:
+            raise ValueError(f"tsdf_fuse: {num} depth maps but {len(seq)} {name}")
+    if masks is not None and len(masks) != num:
+        raise ValueError(f"tsdf_fuse: {num} depth maps but {len(masks)} masks")
+    if alpha_threshold is not None and (alphas is None or len(alphas) != num):
+        raise ValueError("tsdf_fuse: alpha_threshold needs one alpha map per depth map")
+
+
+def _voxel_grid(voxel_size: float) -> o3d.t.geometry.VoxelBlockGrid:
+    """An empty CPU voxel block grid holding TSDF, weight and colour."""
+    return o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight", "color"),
+        attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+        attr_channels=(1, 1, 3),
+        voxel_size=float(voxel_size),
+        block_resolution=8,
+        block_count=10_000,  # initial capacity; the CPU hash map grows as needed
+        device=o3c.Device("CPU:0"),
+    )
+
+
+def _measured_view(
+    i: int, depths, colors, masks, alphas, alpha_threshold: float | None, depth_trunc: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """View ``i``'s (depth (H, W) with 0 where not measured, colour (3, H, W), invalid (H, W)),
+    or None when no pixel is measured; ValueError naming a map of the wrong shape."""
+    depth = _numpy(depths[i], np.float32)
+    if depth.ndim != 3 or depth.shape[0] != 1:
+        raise ValueError(f"tsdf_fuse: depth {i} must be (1, H, W), got {depth.shape}")
+    depth = depth[0].copy()
+    height, width = depth.shape
+    color = _numpy(colors[i], np.float32)
+    if color.shape != (3, height, width):
+        raise ValueError(f"tsdf_fuse: colour {i} must be (3, {height}, {width}), got {color.shape}")
+    invalid = ~np.isfinite(depth) | (depth <= 0) | (depth > depth_trunc)
+    if masks is not None and masks[i] is not None:
+        mask = _numpy(masks[i], bool)
+        if mask.shape != (1, height, width):
+            raise ValueError(f"tsdf_fuse: mask {i} must be (1, {height}, {width}), got {mask.shape}")
+        invalid |= ~mask[0]
+    if alpha_threshold is not None:
+        alpha = _numpy(alphas[i], np.float32)
+        if alpha.shape != (1, height, width):
+            raise ValueError(f"tsdf_fuse: alpha {i} must be (1, {height}, {width}), got {alpha.shape}")
+        invalid |= alpha[0] < alpha_threshold
+    if invalid.all():
+        return None
+    depth[invalid] = 0.0
+    return depth, color, invalid
+
+
+def _integrate(
+    grid: o3d.t.geometry.VoxelBlockGrid,
+    i: int,
+    depth: np.ndarray,
+    color: np.ndarray,
+    invalid: np.ndarray,
+    K: Tensor | np.ndarray,
+    world_to_camera: Tensor | np.ndarray,
+    voxel_size: float,
+    trunc_multiplier: float,
+    depth_trunc: float,
+) -> None:
+    """Integrate view ``i`` (:func:`_measured_view`) into ``grid``."""
+    extrinsic = _numpy(world_to_camera, np.float64)
+    if extrinsic.shape != (4, 4):
+        raise ValueError(f"tsdf_fuse: world_to_camera {i} must be (4, 4), got {extrinsic.shape}")
+    depth_image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth[..., None])))
+    color_image = o3d.t.geometry.Image(
+        o3c.Tensor(np.ascontiguousarray(np.clip(np.nan_to_num(color), 0.0, 1.0).transpose(1, 2, 0)))
+    )
+    # The integration kernel reads pixel floor(u), floor(v) of the projection (u, v), i.e.
+    # pixel (u, v) spans [u, u + 1): the package's +0.5 pixel-centre K applies unchanged.
+    k = _numpy(K, np.float64)
+    if k.shape != (3, 3):
+        raise ValueError(f"tsdf_fuse: K {i} must be (3, 3), got {k.shape}")
+    intrinsic = o3c.Tensor(np.ascontiguousarray(k))
+    extrinsic = o3c.Tensor(np.ascontiguousarray(extrinsic))
+    # open3d allocates blocks within the truncation distance of each pixel's 3D point; when a
+    # pixel covers more than that, blocks between neighbouring pixels would stay unallocated
+    # and the mesh would come out in fragments. Touch at least one pixel footprint.
+    footprint = float(depth[~invalid].max()) / float(min(k[0, 0], k[1, 1]))
+    blocks = grid.compute_unique_block_coordinates(
+        depth_image, intrinsic, extrinsic, 1.0, float(depth_trunc),
+        trunc_voxel_multiplier=max(trunc_multiplier, 2.0 * footprint / float(voxel_size)),
+    )
+    grid.integrate(
+        blocks, depth_image, color_image, intrinsic, intrinsic, extrinsic, 1.0, float(depth_trunc),
+        trunc_voxel_multiplier=trunc_multiplier,
+    )
 
 
 def write_mesh(path: str | os.PathLike, mesh: o3d.geometry.TriangleMesh) -> Path:

@@ -347,22 +347,70 @@ def chamfer_distance(
           (after the region restriction), pred_kept_fraction, gt_kept_fraction, seed.
     """
     step = progress or (lambda name: None)
+    region = _resolve_region(region, cull_views)
+    max_dist, fscore_threshold = _distance_thresholds(gt, max_dist, fscore_threshold)
+
+    step("sampling")
+    gt_points = sample_surface(gt, num_samples, seed)
+    pred_points = sample_surface(pred, num_samples, seed + 1)
+    num_gt_total, num_pred_total = len(gt_points), len(pred_points)
+    pred_points, gt_points = _restrict_to_region(
+        pred_points, gt_points, region, gt, cull_views, cull_dilation_px, occluder, step
+    )
+
+    step("nearest neighbours")
+    to_gt = _nn_distances(pred_points, gt_points)
+    to_pred = _nn_distances(gt_points, pred_points)
+    step("signed distance")
+    signed = signed_distances(pred_points, gt)
+    return {
+        **_distance_figures(to_gt, to_pred, signed, max_dist, fscore_threshold),
+        "max_dist": max_dist,
+        "fscore_threshold": fscore_threshold,
+        "units": units,
+        "region": region,
+        "culled": region != "all",
+        "num_pred_points": int(len(pred_points)),
+        "num_gt_points": int(len(gt_points)),
+        "pred_kept_fraction": len(pred_points) / num_pred_total,
+        "gt_kept_fraction": len(gt_points) / num_gt_total,
+        "seed": int(seed),
+    }
+
+
+def _resolve_region(region: str | None, cull_views: Sequence[View] | None) -> str:
+    """The region of :func:`chamfer_distance` (its default when None); ValueError if impossible."""
     region = ("masks" if cull_views is not None else "all") if region is None else region
     if region not in REGIONS:
         raise ValueError(f"region must be one of {REGIONS}, got {region!r}")
     if region != "all" and not cull_views:
         raise ValueError(f"region {region!r} needs views (cull_views)")
+    return region
+
+
+def _distance_thresholds(gt: MeshLike, max_dist: float | None, fscore_threshold: float | None) -> tuple[float, float]:
+    """(max_dist, fscore_threshold), each given or its fraction of the GT bounding-box diagonal."""
     gt_vertices, _ = _mesh_arrays(gt)
     diagonal = float(np.linalg.norm(gt_vertices.max(0) - gt_vertices.min(0)))
     max_dist = MAX_DIST_FRACTION * diagonal if max_dist is None else float(max_dist)
     fscore_threshold = FSCORE_FRACTION * diagonal if fscore_threshold is None else float(fscore_threshold)
     if not (max_dist > 0 and fscore_threshold > 0):
         raise ValueError(f"max_dist and fscore_threshold must be positive, got {max_dist}, {fscore_threshold}")
+    return max_dist, fscore_threshold
 
-    step("sampling")
-    gt_points = sample_surface(gt, num_samples, seed)
-    pred_points = sample_surface(pred, num_samples, seed + 1)
-    num_gt_total, num_pred_total = len(gt_points), len(pred_points)
+
+def _restrict_to_region(
+    pred_points: np.ndarray,
+    gt_points: np.ndarray,
+    region: str,
+    gt: MeshLike,
+    cull_views: Sequence[View] | None,
+    cull_dilation_px: int,
+    occluder: MeshLike | None,
+    step: Callable[[str], None],
+) -> tuple[np.ndarray, np.ndarray]:
+    """The predicted and GT samples of ``region`` (see :func:`chamfer_distance`); ValueError
+    when none is left."""
     if region == "masks":
         step("culling to the view masks")
         pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px)]
@@ -375,12 +423,14 @@ def chamfer_distance(
             raise ValueError("chamfer_distance: no view sees the ground-truth mesh (cameras and mesh in different frames?)")
     if len(pred_points) == 0:
         raise ValueError("chamfer_distance: every predicted point lies outside the masks")
+    return pred_points, gt_points
 
-    step("nearest neighbours")
-    to_gt = _nn_distances(pred_points, gt_points)
-    to_pred = _nn_distances(gt_points, pred_points)
-    step("signed distance")
-    signed = signed_distances(pred_points, gt)
+
+def _distance_figures(
+    to_gt: np.ndarray, to_pred: np.ndarray, signed: np.ndarray, max_dist: float, fscore_threshold: float
+) -> dict[str, float]:
+    """Accuracy, completeness, Chamfer (capped at ``max_dist`` and uncapped), precision, recall,
+    F-score and the signed-distance figures of :func:`chamfer_distance`."""
 
     def kept_mean(d: np.ndarray) -> float:
         kept = d[d <= max_dist]
@@ -406,16 +456,6 @@ def chamfer_distance(
         "signed_distance_median": float(np.median(signed)),
         "signed_distance_mean": float(signed.mean()),
         "inside_fraction": float((signed < 0).mean()),
-        "max_dist": max_dist,
-        "fscore_threshold": fscore_threshold,
-        "units": units,
-        "region": region,
-        "culled": region != "all",
-        "num_pred_points": int(len(pred_points)),
-        "num_gt_points": int(len(gt_points)),
-        "pred_kept_fraction": len(pred_points) / num_pred_total,
-        "gt_kept_fraction": len(gt_points) / num_gt_total,
-        "seed": int(seed),
     }
 
 

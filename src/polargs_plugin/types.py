@@ -209,6 +209,13 @@ class RenderOut:
     means2d: Tensor | None = None
     radii: Tensor | None = None
 
+    def detached(self) -> RenderOut:
+        """The same render without its autograd graph: every tensor field ``.detach()``-ed (same
+        storage, no copy), ``None`` fields kept. A trainer passes this to the densify hook, which
+        runs after ``backward`` and must not extend or hold the graph."""
+        return replace(self, **{f.name: getattr(self, f.name).detach() for f in fields(self)
+                                if isinstance(getattr(self, f.name), Tensor)})
+
 
 @dataclass
 class GaussianState:

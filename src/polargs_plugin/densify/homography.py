@@ -7,7 +7,9 @@ Sign conventions (derived here, pinned by tests/test_patchmatch_homography.py):
   ``[R_r | t_r]`` and ``[R_s | t_s]``.
 - The plane through the reference pixel ``p`` at camera-z depth ``d`` with unit normal ``n``
   (facing the camera, ``n . K^-1 p~ < 0``) is ``{X : n . X = -d_plane}`` with
-  ``d_plane = -d (n . K_ref^-1 p~) > 0``, the camera-to-plane distance.
+  ``d_plane = -d (n . K_ref^-1 p~) > 0``, the camera-to-plane distance
+  (:func:`~polargs_plugin.geometry.ray_plane_distance`; :func:`~polargs_plugin.geometry.ray_plane_depth`
+  goes back).
 - A pixel ``q`` on that plane back-projects to ``X_r = -d_plane K^-1 q~ / (n . K^-1 q~)``, hence
   ``X_s ~ (R - t n^T / d_plane) K_ref^-1 q~`` and
   ``H = K_s (R - t n^T / d_plane) K_ref^-1`` maps reference pixels to source pixels (COLMAP writes
@@ -25,9 +27,7 @@ __all__ = [
     "relative_pose",
     "pixel_grid",
     "pixel_rays",
-    "plane_distance",
     "plane_homography",
-    "depth_from_plane",
 ]
 
 
@@ -64,17 +64,6 @@ def pixel_rays(K: Tensor, height: int, width: int) -> Tensor:
     return torch.einsum("ij,jhw->ihw", torch.linalg.inv(K), grid)
 
 
-def plane_distance(depth: Tensor, normal: Tensor, ray: Tensor) -> Tensor:
-    """``d_plane = -depth (n . ray)``, positive for planes facing the camera.
-
-    Args:
-        depth: (...,) camera-z depth at the pixel.
-        normal: (..., 3) unit camera-frame normal.
-        ray: (..., 3) the pixel's ray ``K^-1 p~``.
-    """
-    return -depth * (normal * ray).sum(-1)
-
-
 def plane_homography(
     K_ref: Tensor, K_src: Tensor, R: Tensor, t: Tensor, normal: Tensor, d_plane: Tensor
 ) -> Tensor:
@@ -85,22 +74,10 @@ def plane_homography(
         K_src: (..., 3, 3) source intrinsics.
         R: (..., 3, 3), t: (..., 3) reference-to-source pose (:func:`relative_pose`).
         normal: (..., 3) plane normal in the reference camera frame.
-        d_plane: (...,) positive plane distance (:func:`plane_distance`).
+        d_plane: (...,) positive plane distance (:func:`~polargs_plugin.geometry.ray_plane_distance`).
 
     Returns:
         (..., 3, 3) homographies acting on homogeneous pixel coordinates.
     """
     outer = t.unsqueeze(-1) * normal.unsqueeze(-2) / d_plane[..., None, None]
     return K_src @ (R - outer) @ torch.linalg.inv(K_ref)
-
-
-def depth_from_plane(normal: Tensor, d_plane: Tensor, ray: Tensor) -> Tensor:
-    """Camera-z depth where the ray meets the plane ``n . X = -d_plane``.
-
-    Args:
-        normal: (..., 3) plane normal; d_plane: (...,) plane distance; ray: (..., 3) ``K^-1 p~``.
-
-    Returns:
-        (...,) depth; non-positive or infinite where the ray misses the front of the plane.
-    """
-    return -d_plane / (normal * ray).sum(-1)

@@ -45,7 +45,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from polargs_plugin.config import PatchMatchConfig
-from polargs_plugin.densify.homography import depth_from_plane, pixel_rays, plane_distance, relative_pose
+from polargs_plugin.densify.homography import pixel_rays, relative_pose
 from polargs_plugin.densify.ncc import (
     MAX_COST,
     MIN_VARIANCE,
@@ -55,6 +55,7 @@ from polargs_plugin.densify.ncc import (
     reference_windows,
     window_offsets,
 )
+from polargs_plugin.geometry import ray_plane_depth, ray_plane_distance
 from polargs_plugin.optics.azimuth import (
     azimuth_candidates,
     dolp_weight,
@@ -185,7 +186,7 @@ class _Problem:
     def photometric(self, idx: Tensor, depth: Tensor, normal: Tensor) -> Tensor:
         """(P, M) S_c for hypotheses ``depth`` (P, M), ``normal`` (P, M, 3) at flat ``idx``."""
         rays = self.rays.reshape(3, -1).T[idx]  # (P, 3)
-        d_plane = plane_distance(depth, normal, rays[:, None, :])
+        d_plane = ray_plane_distance(depth, normal, rays[:, None, :])
         m = -torch.einsum("ij,pmi->pmj", self.K_inv, normal) / d_plane[..., None]
         cost = bilateral_ncc_cost(
             self.sources, self.A, self.b, self.pixels[idx], 1.0 / depth, m[..., :2].contiguous(),
@@ -214,6 +215,11 @@ class _Problem:
         """Hypotheses (M, H, W) / (M, 3, H, W) with depth in range and the plane facing the ray."""
         facing = (normal * self.rays.unsqueeze(0)).sum(1) < -1e-3
         return torch.isfinite(depth) & (depth >= lo) & (depth <= hi) & facing
+
+
+_State = tuple[Tensor, Tensor, Tensor, Tensor]
+"""The search state, updated in place: depth (H, W), normal (3, H, W), photometric cost (H, W),
+total cost (H, W)."""
 
 
 def _rand(shape, like: Tensor, gen) -> Tensor:
@@ -256,12 +262,7 @@ def patchmatch(
         PatchMatchResult with (1, H, W) depth, (3, H, W) normal, costs and the evaluation count.
     """
     cfg = config or PatchMatchConfig()
-    if src_images.shape[0] == 0:
-        raise ValueError("patchmatch needs at least one source view")
-    if not cfg.propagation_distances or any(k < 1 or k % 2 == 0 for k in cfg.propagation_distances):
-        # An even distance reads a pixel of the colour being updated: a data race between the
-        # numba threads (results would depend on thread timing) and a different rule on torch.
-        raise ValueError(f"propagation_distances must be odd and >= 1 (checkerboard), got {cfg.propagation_distances}")
+    _check_search(src_images, cfg)
     dev = ref_image.device
     backend = _resolve_backend(cfg.ncc_backend, dev)
     if generator is None:
@@ -272,31 +273,8 @@ def patchmatch(
                         src_world_to_camera, aolp, dolp, cfg)
         h, w = prob.h, prob.w
         active = mask[0].bool() if mask is not None else torch.ones(h, w, dtype=torch.bool, device=dev)
-        d0 = init_depth[0].float()
-        valid0 = torch.isfinite(d0) & (d0 > 0)
-        if init_valid is not None:
-            valid0 = valid0 & init_valid[0].bool()
-        n0 = F.normalize(torch.nan_to_num(init_normal.float()), dim=0)
-        fronto = -F.normalize(prob.rays, dim=0)
-        n0 = torch.where(valid0 & ((n0 * prob.rays).sum(0) < -1e-3), n0, fronto)
-        if valid0.any():
-            lo_v, hi_v = d0[valid0].min().item(), d0[valid0].max().item()
-        else:
-            raise ValueError("patchmatch needs a rendered depth on at least one pixel")
-        lo, hi = 0.5 * lo_v, 2.0 * hi_v
-        d0 = torch.where(valid0, d0, lo_v + (hi_v - lo_v) * _rand((h, w), d0, generator))
-
-        # initial hypotheses (M, H, W) / (M, 3, H, W)
-        d_prt = d0 * (1 + cfg.depth_perturbation * (2 * _rand((h, w), d0, generator) - 1))
-        depths, normals = [d0, d_prt], [n0, n0]
-        if aolp is not None:
-            zen = zenith_from_normals(n0, K=prob.K, model=cfg.azimuth_model)
-            n_aolp = normals_from_azimuth(azimuth_candidates(aolp.float()), zen, K=prob.K,
-                                          model=cfg.azimuth_model)  # (4, 3, H, W)
-            for i in range(n_aolp.shape[0]):
-                depths += [d0, d_prt]
-                normals += [n_aolp[i], n_aolp[i]]
-        cand_d, cand_n = torch.stack(depths), torch.stack(normals)
+        d0, n0, lo, hi = _initial_plane(prob, init_depth, init_normal, init_valid, generator)
+        cand_d, cand_n = _initial_hypotheses(prob, d0, n0, aolp, generator)
 
         depth, normal = d0.clone(), n0.clone()
         photo = torch.full((h, w), MAX_COST, device=dev)
@@ -304,21 +282,83 @@ def patchmatch(
         state = (depth, normal, photo, total)
         search = (_NumbaSearch if backend == "numba" else _TorchSearch)(prob, active, lo, hi)
         search.initial(state, cand_d, cand_n)
+        _iterate(search, state, cfg, generator)
+        return _result(state, active, search.evaluations)
 
-        for it in range(cfg.iterations):
-            rel = cfg.refine_depth_range * 0.5**it
-            ang = math.radians(cfg.refine_normal_deg) * 0.5**it
-            for colour in (0, 1):
-                # the same draws in the same order for both backends
-                uni = _rand((2, h, w), depth, generator)
-                noise = torch.randn((2, 3, h, w), device=dev, generator=generator)
-                search.half_step(state, colour, rel, ang, uni, noise)
 
-        depth = torch.where(active, depth, torch.zeros_like(depth))
-        normal = torch.where(active, normal, torch.zeros_like(normal))
-        photo = torch.where(active, photo, torch.full_like(photo, MAX_COST))
-        total = torch.where(active, total, torch.full_like(total, math.inf))
-        return PatchMatchResult(depth[None], normal, total[None], photo[None], search.evaluations)
+def _check_search(src_images: Tensor, cfg: PatchMatchConfig) -> None:
+    """ValueError unless there is a source view and the propagation distances are odd."""
+    if src_images.shape[0] == 0:
+        raise ValueError("patchmatch needs at least one source view")
+    if not cfg.propagation_distances or any(k < 1 or k % 2 == 0 for k in cfg.propagation_distances):
+        # An even distance reads a pixel of the colour being updated: a data race between the
+        # numba threads (results would depend on thread timing) and a different rule on torch.
+        raise ValueError(f"propagation_distances must be odd and >= 1 (checkerboard), got {cfg.propagation_distances}")
+
+
+def _initial_plane(
+    prob: _Problem, init_depth: Tensor, init_normal: Tensor, init_valid: Tensor | None, generator
+) -> tuple[Tensor, Tensor, float, float]:
+    """(depth (H, W), normal (3, H, W), lo, hi): the rendered plane where it is trusted and faces
+    the camera; elsewhere a random depth within the rendered range and a fronto-parallel normal.
+    [lo, hi] = [0.5 x, 2 x] the rendered depth range bounds the search."""
+    h, w = prob.h, prob.w
+    d0 = init_depth[0].float()
+    valid0 = torch.isfinite(d0) & (d0 > 0)
+    if init_valid is not None:
+        valid0 = valid0 & init_valid[0].bool()
+    n0 = F.normalize(torch.nan_to_num(init_normal.float()), dim=0)
+    fronto = -F.normalize(prob.rays, dim=0)
+    n0 = torch.where(valid0 & ((n0 * prob.rays).sum(0) < -1e-3), n0, fronto)
+    if valid0.any():
+        lo_v, hi_v = d0[valid0].min().item(), d0[valid0].max().item()
+    else:
+        raise ValueError("patchmatch needs a rendered depth on at least one pixel")
+    d0 = torch.where(valid0, d0, lo_v + (hi_v - lo_v) * _rand((h, w), d0, generator))
+    return d0, n0, 0.5 * lo_v, 2.0 * hi_v
+
+
+def _initial_hypotheses(
+    prob: _Problem, d0: Tensor, n0: Tensor, aolp: Tensor | None, generator
+) -> tuple[Tensor, Tensor]:
+    """Initial hypotheses (M, H, W) depths and (M, 3, H, W) normals: the initial plane and a
+    perturbed depth, each also with the four AoLP normals when ``aolp`` is given."""
+    cfg = prob.cfg
+    d_prt = d0 * (1 + cfg.depth_perturbation * (2 * _rand((prob.h, prob.w), d0, generator) - 1))
+    depths, normals = [d0, d_prt], [n0, n0]
+    if aolp is not None:
+        zen = zenith_from_normals(n0, K=prob.K, model=cfg.azimuth_model)
+        n_aolp = normals_from_azimuth(azimuth_candidates(aolp.float()), zen, K=prob.K,
+                                      model=cfg.azimuth_model)  # (4, 3, H, W)
+        for i in range(n_aolp.shape[0]):
+            depths += [d0, d_prt]
+            normals += [n_aolp[i], n_aolp[i]]
+    return torch.stack(depths), torch.stack(normals)
+
+
+def _iterate(search: _TorchSearch | _NumbaSearch, state: _State, cfg: PatchMatchConfig, generator) -> None:
+    """The red-black sweeps: per iteration, both checkerboard colours with a refinement range
+    halved each iteration."""
+    depth, device = state[0], state[2].device
+    _, h, w = state[1].shape
+    for it in range(cfg.iterations):
+        rel = cfg.refine_depth_range * 0.5**it
+        ang = math.radians(cfg.refine_normal_deg) * 0.5**it
+        for colour in (0, 1):
+            # the same draws in the same order for both backends
+            uni = _rand((2, h, w), depth, generator)
+            noise = torch.randn((2, 3, h, w), device=device, generator=generator)
+            search.half_step(state, colour, rel, ang, uni, noise)
+
+
+def _result(state: _State, active: Tensor, evaluations: int) -> PatchMatchResult:
+    """The search state as a :class:`PatchMatchResult`, pixels outside ``active`` reset."""
+    depth, normal, photo, total = state
+    depth = torch.where(active, depth, torch.zeros_like(depth))
+    normal = torch.where(active, normal, torch.zeros_like(normal))
+    photo = torch.where(active, photo, torch.full_like(photo, MAX_COST))
+    total = torch.where(active, total, torch.full_like(total, math.inf))
+    return PatchMatchResult(depth[None], normal, total[None], photo[None], evaluations)
 
 
 @contextmanager
@@ -482,7 +522,7 @@ def _propagation_candidates(prob: _Problem, state, active: Tensor, cfg: PatchMat
     depth, normal, _, total = state
     h, w = prob.h, prob.w
     rays_hw = prob.rays.permute(1, 2, 0)
-    d_plane = plane_distance(depth, normal.permute(1, 2, 0), rays_hw)
+    d_plane = ray_plane_distance(depth, normal.permute(1, 2, 0), rays_hw)
     cost = torch.where(active, total, torch.full_like(total, math.inf))
     r = max(cfg.propagation_distances)
     # one padded copy; every neighbour offset is then a view (no per-offset allocation)
@@ -495,7 +535,7 @@ def _propagation_candidates(prob: _Problem, state, active: Tensor, cfg: PatchMat
         best, pick = costs.min(0, keepdim=True)
         planes = torch.stack([plane_p[:, y : y + h, x : x + w] for y, x in win])  # (K, 4, H, W)
         plane = planes.gather(0, pick[:, None].expand(1, 4, -1, -1))[0]
-        d_p = depth_from_plane(plane[:3].permute(1, 2, 0), plane[3], rays_hw)
+        d_p = ray_plane_depth(plane[3], plane[:3].permute(1, 2, 0), rays_hw)
         depths.append(torch.where(torch.isfinite(best[0]), d_p, torch.full_like(d_p, math.nan)))
         normals.append(plane[:3])
     return torch.stack(depths), torch.stack(normals)

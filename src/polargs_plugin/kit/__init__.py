@@ -6,10 +6,13 @@
   with their Adam state (one optimizer with named groups, or one optimizer per name).
 - :mod:`.cameras`: the graphdeco-family camera (FoV, transposed W2C) <-> :class:`View`.
 - :mod:`.patching` (imported on its own): the anchor-line engine of the patch scripts.
+- from :mod:`polargs_plugin.geometry`, the pieces adapters call most: SH DC conversions
+  (:func:`rgb_to_sh`, :func:`sh_to_rgb`), shortest-axis normals and the plane depth.
 
 The reference trainer (``polargs_plugin.backends.reference``) uses this kit itself.
 """
 
+from polargs_plugin.geometry import depth_from_plane, rgb_to_sh, sh_to_rgb, shortest_axis_normals
 from polargs_plugin.kit.append import (
     RAW_NAMES,
     append_rows,
@@ -18,8 +21,6 @@ from polargs_plugin.kit.append import (
     new_from_raw,
     pad_rows,
     raw_from_new,
-    rgb_to_sh,
-    sh_to_rgb,
     state_from_raw,
 )
 from polargs_plugin.kit.cameras import GraphdecoCamera, graphdeco_from_view, view_from_graphdeco, world_view_transform
@@ -29,11 +30,9 @@ from polargs_plugin.kit.render import (
     clamped_aux_colors,
     depth_from_accumulated,
     depth_from_inverse,
-    depth_from_plane,
     gaussian_normals,
     render_out_from_aux,
     render_out_from_clamped_aux,
-    shortest_axis_normals,
 )
 
 __all__ = [

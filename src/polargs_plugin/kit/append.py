@@ -27,14 +27,11 @@ from typing import Callable, Mapping, MutableMapping
 import torch
 from torch import Tensor, nn
 
-from polargs_plugin.backends.reference.projection import SH_C0, rgb_to_sh, sh_to_rgb
+from polargs_plugin.geometry import rgb_to_sh, sh_to_rgb
 from polargs_plugin.types import GaussianState, NewGaussians
 
 __all__ = [
     "RAW_NAMES",
-    "SH_C0",
-    "rgb_to_sh",
-    "sh_to_rgb",
     "logit",
     "raw_from_new",
     "new_from_raw",

@@ -30,6 +30,16 @@ def inria_anchors(adapter: str, render_tail: str, render_tail_looks_for: str, at
     """
     module = f"polargs_{adapter}"
     return (
+        *_import_anchors(adapter, module),
+        *_setup_anchors(module, attach_extra),
+        *_step_anchors(render_tail, render_tail_looks_for),
+        *_after_step_anchors(),
+    )
+
+
+def _import_anchors(adapter: str, module: str) -> tuple[Anchor, ...]:
+    """The render import (its local name) and the adapter's import after the last import line."""
+    return (
         Anchor(
             name="render import",
             regex=r"from\s+gaussian_renderer\s+import\s+.*?\brender\b(?:\s+as\s+(?P<render>\w+))?",
@@ -44,6 +54,12 @@ def inria_anchors(adapter: str, render_tail: str, render_tail_looks_for: str, at
             lines=(f"import polargs_adapters.{adapter} as {module}",),
             looks_for="a top-level import line",
         ),
+    )
+
+
+def _setup_anchors(module: str, attach_extra: str) -> tuple[Anchor, ...]:
+    """The model and scene lines (their names) and ``attach`` before the training loop."""
+    return (
         Anchor(
             name="GaussianModel",
             regex=r"\s*(?P<gaussians>\w+)\s*=\s*GaussianModel\(",
@@ -62,6 +78,12 @@ def inria_anchors(adapter: str, render_tail: str, render_tail_looks_for: str, at
             lines=(f"polar = {module}.attach({{scene}}, {{gaussians}}, {{pipe}}, {{render}}{attach_extra})",),
             looks_for="`for <iteration> in range(...):` below the Scene line, indented like it",
         ),
+    )
+
+
+def _step_anchors(render_tail: str, render_tail_looks_for: str) -> tuple[Anchor, ...]:
+    """The loss line before ``backward`` and the render call it takes its names from."""
+    return (
         Anchor(
             name="loss backward",
             regex=r"\s*(?P<loss>\w+)\.backward\(\s*\)$",
@@ -83,6 +105,12 @@ def inria_anchors(adapter: str, render_tail: str, render_tail_looks_for: str, at
                 " above the backward call, indented like it"
             ),
         ),
+    )
+
+
+def _after_step_anchors() -> tuple[Anchor, ...]:
+    """``densify`` after the optimizer step, before the checkpoint block of the no_grad block."""
+    return (
         Anchor(
             name="no_grad block",
             regex=r"\s*with\s+torch\.no_grad\(\)\s*:$",

@@ -13,17 +13,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from polargs_plugin.backends.reference.projection import (
-    depth_from_plane,
-    plane_distances,
-    quat_to_rotmat,
-    shortest_axis_normals,
-)
+from polargs_plugin.geometry import depth_from_plane, plane_distances, quat_to_rotmat, shortest_axis_normals
 from polargs_plugin.types import RenderOut
 
 __all__ = [
     "AUX_CHANNELS",
-    "shortest_axis_normals",
     "gaussian_normals",
     "aux_channels",
     "render_out_from_aux",
@@ -31,7 +25,6 @@ __all__ = [
     "render_out_from_clamped_aux",
     "depth_from_inverse",
     "depth_from_accumulated",
-    "depth_from_plane",
 ]
 
 AUX_CHANNELS = ("normal_x", "normal_y", "normal_z", "alpha", "z", "distance")
@@ -98,7 +91,7 @@ def render_out_from_aux(
         aux: (6, H, W) the composited aux channels (background 0, not clamped); channel-last
             (H, W, 6) images (gsplat) must be permuted first.
         K: (3, 3) intrinsics of the render; given, the RenderOut also has the unbiased plane
-            depth (:func:`depth_from_plane`), which L_dn then uses.
+            depth (:func:`~polargs_plugin.geometry.depth_from_plane`), which L_dn then uses.
         median_depth: passed through to the RenderOut.
         means2d: passed through to the RenderOut.
         radii: passed through to the RenderOut.

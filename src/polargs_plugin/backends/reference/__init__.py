@@ -1,8 +1,9 @@
 """The bundled reference backend: a differentiable torch rasterizer (with a compiled CPU kernel),
 a minimal vanilla-3DGS Gaussian model with adaptive density control, and its trainer.
 
-Names are imported on first use, so that importing one module of the backend (the adapter kit
-imports :mod:`.projection`) does not pull in the trainer and its dependencies.
+Names are imported on first use, so that importing one module of the backend does not pull in
+the trainer and its dependencies. The SH colour (``eval_sh``, ``rgb_to_sh``, ``sh_to_rgb``) lives
+in :mod:`polargs_plugin.geometry`.
 """
 
 from importlib import import_module
@@ -11,9 +12,6 @@ from typing import Any
 _EXPORTS = {
     "rasterize": "rasterizer",
     "resolve_backend": "rasterizer",
-    "eval_sh": "projection",
-    "rgb_to_sh": "projection",
-    "sh_to_rgb": "projection",
     "GaussianModel": "model",
     "init_points_from_masks": "model",
     "DensityConfig": "strategy",

@@ -1,19 +1,22 @@
 """Tile binning: which Gaussians can touch which screen tile, front to back, with one sort.
 
 No gradients flow here; the output is integer index lists shared by every compositing path. On
-CPU (with numba) the lists are filled by a counting pass over the Gaussians in depth order
-(:func:`~.composite_numba.tile_lists`), which gives the same lists as the sort without the
-expansion, the sort and the index arithmetic over all pairs.
+CPU the lists are filled by a compiled counting pass over the Gaussians in depth order
+(:func:`counted_tile_lists`), which gives the same lists as the sort
+(:func:`sorted_tile_lists`, any device) without the expansion, the sort and the index
+arithmetic over all pairs.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba
+import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["TileBins", "bin_gaussians"]
+__all__ = ["TileBins", "bin_gaussians", "counted_tile_lists", "sorted_tile_lists"]
 
 
 class TileBins(NamedTuple):
@@ -40,7 +43,8 @@ class TileBins(NamedTuple):
 def bin_gaussians(
     means2d: Tensor, extents: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16
 ) -> TileBins:
-    """Expand Gaussians into (tile, Gaussian) pairs and sort them by the key tile_id * N + depth rank.
+    """Per screen tile, the Gaussians that can touch it, front to back: the (tile, Gaussian) pairs
+    in the order of the key tile_id * N + depth rank.
 
     A Gaussian is assigned to every tile holding a pixel centre (u + 0.5, v + 0.5) inside the
     axis-aligned box of half-widths ``extents`` around its mean, so every pixel it can affect
@@ -57,7 +61,6 @@ def bin_gaussians(
         :class:`TileBins`.
     """
     device = means2d.device
-    n = means2d.shape[0]
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     r = extents.to(means2d.dtype)
@@ -68,19 +71,28 @@ def bin_gaussians(
     visible = (r > 0).all(dim=-1) & (lo <= hi).all(dim=-1)
     lo_t = torch.div(lo.clamp_max(max(width, height)).long(), tile_size, rounding_mode="floor")
     hi_t = torch.div(hi.clamp_min(0).long(), tile_size, rounding_mode="floor")
+    depth_order = torch.argsort(depths)
+    tile_lists = counted_tile_lists if device.type == "cpu" else sorted_tile_lists
+    gauss_ids, tile_offsets = tile_lists(depth_order, lo_t, hi_t, visible, tiles_x, tiles_y)
+    return TileBins(gauss_ids, tile_offsets, tiles_x, tiles_y, tile_size, visible)
+
+
+def sorted_tile_lists(
+    depth_order: Tensor, lo_t: Tensor, hi_t: Tensor, visible: Tensor, tiles_x: int, tiles_y: int
+) -> tuple[Tensor, Tensor]:
+    """(gauss_ids, tile_offsets) of :class:`TileBins` by sorting: every (tile, Gaussian) pair of
+    the visible Gaussians' tile boxes, sorted by the key tile_id * N + depth rank (any device).
+
+    Args:
+        depth_order: (N,) int64 Gaussian indices front to back.
+        lo_t, hi_t: (N, 2) int64 first and last tile (x, y) of each Gaussian's box.
+        visible: (N,) bool, the Gaussians that get pairs.
+        tiles_x, tiles_y: tile grid size.
+    """
+    device = depth_order.device
+    n = depth_order.shape[0]
     span = (hi_t - lo_t + 1).clamp_min(0)
     counts = torch.where(visible, span[:, 0] * span[:, 1], torch.zeros_like(span[:, 0]))
-    depth_order = torch.argsort(depths)
-
-    if device.type == "cpu":
-        try:
-            from .composite_numba import tile_lists
-        except ImportError:  # numba missing: the torch expansion and sort below
-            pass
-        else:
-            gauss_ids, tile_offsets = tile_lists(depth_order, lo_t, hi_t, visible, tiles_x, tiles_y)
-            return TileBins(gauss_ids, tile_offsets, tiles_x, tiles_y, tile_size, visible)
-
     gid = torch.repeat_interleave(torch.arange(n, device=device), counts)
     starts = torch.cumsum(counts, 0) - counts
     local = torch.arange(gid.shape[0], device=device) - starts[gid]
@@ -95,4 +107,39 @@ def bin_gaussians(
     gauss_ids = gid[order]
     per_tile = torch.bincount(tile_id, minlength=tiles_x * tiles_y)
     tile_offsets = torch.cat([per_tile.new_zeros(1), torch.cumsum(per_tile, 0)])
-    return TileBins(gauss_ids, tile_offsets, tiles_x, tiles_y, tile_size, visible)
+    return gauss_ids, tile_offsets
+
+
+def counted_tile_lists(
+    depth_order: Tensor, lo_t: Tensor, hi_t: Tensor, visible: Tensor, tiles_x: int, tiles_y: int
+) -> tuple[Tensor, Tensor]:
+    """(gauss_ids, tile_offsets) of :class:`TileBins` by counting (CPU tensors, compiled):
+    visible Gaussians, taken in ``depth_order``, are appended to every tile of their tile box
+    [lo_t, hi_t]; the same lists as :func:`sorted_tile_lists` (same arguments)."""
+    arrays = (t.contiguous().numpy() for t in (depth_order, lo_t, hi_t, visible))
+    gauss_ids, offsets = _tile_lists_kernel(*arrays, tiles_x, tiles_x * tiles_y)
+    return torch.from_numpy(gauss_ids), torch.from_numpy(offsets)
+
+
+@numba.njit(cache=True)
+def _tile_lists_kernel(depth_order, lo_t, hi_t, visible, tiles_x, num_tiles):
+    n = depth_order.shape[0]
+    offsets = np.zeros(num_tiles + 1, np.int64)
+    for g in range(n):
+        if visible[g]:
+            for ty in range(lo_t[g, 1], hi_t[g, 1] + 1):
+                for tx in range(lo_t[g, 0], hi_t[g, 0] + 1):
+                    offsets[ty * tiles_x + tx + 1] += 1
+    for t in range(num_tiles):
+        offsets[t + 1] += offsets[t]
+    fill = offsets[:-1].copy()
+    gauss_ids = np.empty(offsets[num_tiles], np.int64)
+    for k in range(n):
+        g = depth_order[k]
+        if visible[g]:
+            for ty in range(lo_t[g, 1], hi_t[g, 1] + 1):
+                for tx in range(lo_t[g, 0], hi_t[g, 0] + 1):
+                    t = ty * tiles_x + tx
+                    gauss_ids[fill[t]] = g
+                    fill[t] += 1
+    return gauss_ids, offsets

@@ -29,7 +29,7 @@ from .binning import TileBins
 from .composite_torch import ALPHA_MAX, T_MIN, Composite
 from .projection import ALPHA_MIN, Projection
 
-__all__ = ["composite_numba", "tile_lists"]
+__all__ = ["composite_numba"]
 
 # Columns of the per-pair gradient rows: means2d 2, conics 3, opacity 1, colour 3, normal 3,
 # ray_coeffs 9, ray_offsets 3, depth_bounds 2, plane distance 1.
@@ -431,42 +431,6 @@ def _backward_kernel(
             row[6], row[7], row[8], row[9], row[10], row[11] = d_col0, d_col1, d_col2, d_n0, d_n1, d_n2
             _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row)
             row[24], row[25], row[26] = d_lo, d_hi, d_dist
-
-
-@numba.njit(cache=True)
-def _tile_lists_kernel(depth_order, lo_t, hi_t, visible, tiles_x, num_tiles):
-    n = depth_order.shape[0]
-    offsets = np.zeros(num_tiles + 1, np.int64)
-    for g in range(n):
-        if visible[g]:
-            for ty in range(lo_t[g, 1], hi_t[g, 1] + 1):
-                for tx in range(lo_t[g, 0], hi_t[g, 0] + 1):
-                    offsets[ty * tiles_x + tx + 1] += 1
-    for t in range(num_tiles):
-        offsets[t + 1] += offsets[t]
-    fill = offsets[:-1].copy()
-    gauss_ids = np.empty(offsets[num_tiles], np.int64)
-    for k in range(n):
-        g = depth_order[k]
-        if visible[g]:
-            for ty in range(lo_t[g, 1], hi_t[g, 1] + 1):
-                for tx in range(lo_t[g, 0], hi_t[g, 0] + 1):
-                    t = ty * tiles_x + tx
-                    gauss_ids[fill[t]] = g
-                    fill[t] += 1
-    return gauss_ids, offsets
-
-
-def tile_lists(
-    depth_order: Tensor, lo_t: Tensor, hi_t: Tensor, visible: Tensor, tiles_x: int, tiles_y: int
-) -> tuple[Tensor, Tensor]:
-    """(gauss_ids, tile_offsets) of :class:`~.binning.TileBins` by counting: visible Gaussians,
-    taken in ``depth_order``, are appended to every tile of their tile box [lo_t, hi_t]; the
-    same lists as sorting the pairs by tile_id * N + depth rank."""
-    gauss_ids, offsets = _tile_lists_kernel(
-        _np(depth_order), _np(lo_t), _np(hi_t), _np(visible), tiles_x, tiles_x * tiles_y
-    )
-    return torch.from_numpy(gauss_ids), torch.from_numpy(offsets)
 
 
 @numba.njit(cache=True)

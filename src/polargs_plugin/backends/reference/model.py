@@ -21,18 +21,16 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
-from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D, SH_C0, quat_to_rotmat, rgb_to_sh, sh_to_rgb
+from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D
 from polargs_plugin.config import CheckedConfig, at_least, satisfies, within
+from polargs_plugin.geometry import quat_to_rotmat, rgb_to_sh
 from polargs_plugin.kit.append import RAW_NAMES, edit_rows, logit, pad_rows, raw_from_new
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
 __all__ = [
-    "SH_C0",
     "PARAM_NAMES",
     "LearningRates",
     "GaussianModel",
-    "rgb_to_sh",
-    "sh_to_rgb",
     "exponential_lr",
     "scene_extent",
     "init_points_from_masks",

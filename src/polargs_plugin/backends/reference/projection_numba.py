@@ -1,13 +1,14 @@
 """Compiled CPU projection (Numba): :func:`~.projection.project_gaussians` and the SH colour
-:func:`~.projection.eval_sh` as one forward kernel and one hand-written backward kernel.
+:func:`~polargs_plugin.geometry.eval_sh` as one forward kernel and one hand-written backward kernel.
 
 Same rules and outputs as the torch functions (which stay the reference and the CUDA path):
 near/far culling with a harmless z = 1 for culled Gaussians, the 1.3x field-of-view clamp of
 the EWA Jacobian, the ``eps2d`` dilation, the opacity-aware extents, the +-5 sigma_z depth clamp,
-the shortest-axis normal flipped to face the camera (:func:`~.projection.shortest_axis_normals`),
-the SH basis of :func:`~.projection.eval_sh` (+0.5, clamped at 0). The constants come from
-:mod:`.projection`; tests/test_projection_numba.py checks values and gradients against the torch
-functions, ties and culled Gaussians included.
+the shortest-axis normal flipped to face the camera
+(:func:`~polargs_plugin.geometry.shortest_axis_normals`), the SH basis of
+:func:`~polargs_plugin.geometry.eval_sh` (+0.5, clamped at 0). The constants come from
+:mod:`.projection` and :mod:`polargs_plugin.geometry`; tests/test_projection_numba.py checks
+values and gradients against the torch functions, ties and culled Gaussians included.
 
 Everything is computed in float64 inside the kernels and stored in the inputs' dtype. The
 camera (K, world_to_camera) gets no gradient here: :func:`project_numba` is only used when
@@ -23,29 +24,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from polargs_plugin.geometry import SH_C0, SH_C1, SH_C2, SH_C3, sh_degree_from_coeffs
 from polargs_plugin.threads import numba_scheduling
 
-from .projection import (
-    _C1,
-    _C2,
-    _C3,
-    ALPHA_MIN,
-    DEFAULT_EPS2D,
-    DEPTH_CLAMP_SIGMAS,
-    EXTENT_SLACK,
-    FOV_CLAMP,
-    SH_C0,
-    Projection,
-    sh_degree_from_coeffs,
-)
+from .projection import ALPHA_MIN, DEFAULT_EPS2D, DEPTH_CLAMP_SIGMAS, EXTENT_SLACK, FOV_CLAMP, Projection
 
 __all__ = ["project_numba"]
 
 _CHUNK = 64  # Gaussians per parallel work item (scratch matrices are allocated once per item)
 _LOG_ALPHA_MIN = math.log(ALPHA_MIN)
 
-C20, C21, C22, C23, C24 = _C2
-C30, C31, C32, C33, C34, C35, C36 = _C3
+C20, C21, C22, C23, C24 = SH_C2
+C30, C31, C32, C33, C34, C35, C36 = SH_C3
 
 
 @numba.njit(inline="always")
@@ -94,12 +84,12 @@ def _geometry(i, means, quats, scales, w2c, rot, axes, cov):
 
 @numba.njit(inline="always")
 def _sh_basis(degree, dx, dy, dz, basis):
-    """Real SH basis of :func:`~.projection.eval_sh` at the unit direction (dx, dy, dz)."""
+    """Real SH basis of :func:`~polargs_plugin.geometry.eval_sh` at the unit direction (dx, dy, dz)."""
     basis[0] = SH_C0
     if degree >= 1:
-        basis[1] = -_C1 * dy
-        basis[2] = _C1 * dz
-        basis[3] = -_C1 * dx
+        basis[1] = -SH_C1 * dy
+        basis[2] = SH_C1 * dz
+        basis[3] = -SH_C1 * dx
     if degree >= 2:
         xx, yy, zz, xy, yz, xz = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
         basis[4] = C20 * xy
@@ -120,9 +110,9 @@ def _sh_basis(degree, dx, dy, dz, basis):
 @numba.njit(inline="always")
 def _sh_basis_grad(degree, x, y, z, gb):
     """d(sum_k gb_k Y_k)/d(x, y, z) at the unit direction (x, y, z)."""
-    gx = -_C1 * gb[3]
-    gy = -_C1 * gb[1]
-    gz = _C1 * gb[2]
+    gx = -SH_C1 * gb[3]
+    gy = -SH_C1 * gb[1]
+    gz = SH_C1 * gb[2]
     if degree >= 2:
         gx += C20 * y * gb[4] - 2 * C22 * x * gb[6] + C23 * z * gb[7] + 2 * C24 * x * gb[8]
         gy += C20 * x * gb[4] + C21 * z * gb[5] - 2 * C22 * y * gb[6] - 2 * C24 * y * gb[8]
@@ -537,7 +527,7 @@ def project_numba(
             for :func:`~.projection.project_gaussians` (CPU tensors; K and world_to_camera get no
             gradient).
         colors: (N, 3) RGB, passed through, or (N, K, 3) SH coefficients evaluated as
-            :func:`~.projection.eval_sh` does at the direction camera centre -> mean.
+            :func:`~polargs_plugin.geometry.eval_sh` does at the direction camera centre -> mean.
 
     Returns:
         (projection, colours (N, 3)), both differentiable through one custom autograd function.

@@ -4,9 +4,9 @@ Pipeline: projection (EWA, differentiable) -> :func:`~.binning.bin_gaussians` (n
 sort) -> compositing, either the exact pure-torch two-pass path (:mod:`.composite_torch`, any
 device) or the compiled CPU kernel (:mod:`.composite_numba`, same rule, hand-written backward).
 The compositing rule is stated in :mod:`.composite_torch`. The projection and SH colour are
-:func:`~.projection.project_gaussians` and :func:`~.projection.eval_sh` (torch, the reference and
-the CUDA path) or, on the numba path, the compiled :func:`~.projection_numba.project_numba` (same
-outputs, hand-written backward).
+:func:`~.projection.project_gaussians` and :func:`~polargs_plugin.geometry.eval_sh` (torch, the
+reference and the CUDA path) or, on the numba path, the compiled
+:func:`~.projection_numba.project_numba` (same outputs, hand-written backward).
 """
 
 from __future__ import annotations
@@ -16,10 +16,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from ...geometry import depth_from_plane, eval_sh, plane_distances
 from ...types import RenderOut
-from .binning import bin_gaussians
-from .composite_torch import composite_torch
-from .projection import DEFAULT_EPS2D, depth_from_plane, eval_sh, plane_distances, project_gaussians
+from .binning import TileBins, bin_gaussians
+from .composite_torch import Composite, composite_torch
+from .projection import DEFAULT_EPS2D, Projection, project_gaussians
 
 __all__ = ["rasterize", "resolve_backend"]
 
@@ -92,7 +93,7 @@ def rasterize(
         projection: how the numba path projects and evaluates SH: "auto"/"numba" with the
             compiled kernel of :mod:`.projection_numba` ("auto" falls back to torch when K or
             world_to_camera require grad, which that kernel does not give), "torch" with
-            :func:`~.projection.project_gaussians` + :func:`~.projection.eval_sh` and their autograd
+            :func:`~.projection.project_gaussians` + :func:`~polargs_plugin.geometry.eval_sh` and their autograd
             graph (the path before the compiled projection, kept for comparison; same results to
             float rounding). The torch compositing path always projects in torch.
         with_plane_depth: also composite each Gaussian's plane distance and return
@@ -123,23 +124,10 @@ def rasterize(
         - radii (N,) int64 opacity-aware screen radius in pixels (larger half-width of the box
           bounding alpha >= 1/255), 0 = culled by near/far or off-screen.
     """
-    n = means.shape[0]
-    if means.shape != (n, 3) or quats.shape != (n, 4) or scales.shape != (n, 3) or opacities.shape != (n,):
-        raise ValueError(
-            "expected means (N,3), quats (N,4), scales (N,3), opacities (N,); got "
-            f"{tuple(means.shape)}, {tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(opacities.shape)}"
-        )
-    if colors.shape[0] != n or colors.shape[-1] != 3 or colors.dim() not in (2, 3):
-        raise ValueError(f"colors must be (N,3) or (N,K,3) with N={n}, got {tuple(colors.shape)}")
+    _check_gaussians(means, quats, scales, opacities, colors)
     path = resolve_backend(backend, means.device)
-    if projection not in ("auto", "torch", "numba"):
-        raise ValueError(f"projection must be 'auto', 'torch' or 'numba', got {projection!r}")
-    if projection == "numba" and path != "numba":
-        raise ValueError("projection='numba' needs the numba compositing path (backend 'numba'/'auto' on CPU)")
     camera_grad = K.requires_grad or world_to_camera.requires_grad
-    if projection == "numba" and camera_grad:
-        raise ValueError("projection='numba' gives no gradient to K / world_to_camera; use projection='torch'")
-
+    _check_projection(projection, path, camera_grad)
     if path == "numba" and projection != "torch" and not camera_grad:
         from .projection_numba import project_numba
 
@@ -148,10 +136,7 @@ def rasterize(
         )
     else:
         proj = project_gaussians(means, quats, scales, opacities, K, world_to_camera, width, height, near, far, eps2d)
-        if colors.dim() == 3:
-            w2c = world_to_camera.to(means)
-            camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
-            colors = eval_sh(colors, means - camera_center)
+        colors = _view_colors(colors, means, world_to_camera)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
@@ -164,7 +149,44 @@ def rasterize(
         comp = composite_numba(proj, opacities, colors, bins, width, height, distances)
     else:
         comp = composite_torch(proj, opacities, colors, bins, width, height, distances)
+    return _render_out(comp, proj, bins, background, K.to(means) if with_plane_depth else None)
 
+
+def _check_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor) -> None:
+    """ValueError naming the shapes unless they are those :func:`rasterize` documents."""
+    n = means.shape[0]
+    if means.shape != (n, 3) or quats.shape != (n, 4) or scales.shape != (n, 3) or opacities.shape != (n,):
+        raise ValueError(
+            "expected means (N,3), quats (N,4), scales (N,3), opacities (N,); got "
+            f"{tuple(means.shape)}, {tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(opacities.shape)}"
+        )
+    if colors.shape[0] != n or colors.shape[-1] != 3 or colors.dim() not in (2, 3):
+        raise ValueError(f"colors must be (N,3) or (N,K,3) with N={n}, got {tuple(colors.shape)}")
+
+
+def _check_projection(projection: ProjectionPath, path: str, camera_grad: bool) -> None:
+    """ValueError unless ``projection`` is possible with compositing ``path`` (see :func:`rasterize`)."""
+    if projection not in ("auto", "torch", "numba"):
+        raise ValueError(f"projection must be 'auto', 'torch' or 'numba', got {projection!r}")
+    if projection == "numba" and path != "numba":
+        raise ValueError("projection='numba' needs the numba compositing path (backend 'numba'/'auto' on CPU)")
+    if projection == "numba" and camera_grad:
+        raise ValueError("projection='numba' gives no gradient to K / world_to_camera; use projection='torch'")
+
+
+def _view_colors(colors: Tensor, means: Tensor, world_to_camera: Tensor) -> Tensor:
+    """Per-Gaussian RGB: ``colors`` (N, 3) as they are, (N, K, 3) SH evaluated towards the camera."""
+    if colors.dim() != 3:
+        return colors
+    w2c = world_to_camera.to(means)
+    camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
+    return eval_sh(colors, means - camera_center)
+
+
+def _render_out(
+    comp: Composite, proj: Projection, bins: TileBins, background: Tensor | None, plane_K: Tensor | None
+) -> RenderOut:
+    """The composited sums as a :class:`RenderOut`; the plane depth with intrinsics ``plane_K``."""
     color = comp.color
     if background is not None:
         color = color + (1.0 - comp.alpha) * background.to(color).reshape(3, 1, 1)
@@ -178,7 +200,7 @@ def rasterize(
         normal=comp.normal,
         alpha=comp.alpha,
         median_depth=comp.median_depth,
-        plane_depth=depth_from_plane(comp.distance, comp.normal, K.to(means)) if with_plane_depth else None,
-        means2d=means2d,
+        plane_depth=None if plane_K is None else depth_from_plane(comp.distance, comp.normal, plane_K),
+        means2d=proj.means2d,
         radii=radii,
     )

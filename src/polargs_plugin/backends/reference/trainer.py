@@ -334,7 +334,7 @@ class Trainer:
         with torch.no_grad():
             refined = self.density.step(model, it)
             if self.hooks is not None and self.hooks.densify_due(it):
-                new = self.hooks.densify(it, view, self.render, model.state(), render=_detached(render))
+                new = self.hooks.densify(it, view, self.render, model.state(), render=render.detached())
                 if new is not None and len(new) > 0:
                     model.append(new)
                     self.density.pad(len(new))
@@ -559,14 +559,6 @@ def _check_ssim_weight(config: TrainConfig, hooks: TrainingHooks | None) -> None
             f"{hooks.config.losses.ssim_weight}: the PC loss replaces the trainer's colour loss on reflective "
             "pixels only if both are equal; set one to the other"
         )
-
-
-def _detached(render: RenderOut) -> RenderOut:
-    """The render without its autograd graph (the densify hook runs after backward)."""
-    return dataclasses.replace(
-        render, **{f.name: getattr(render, f.name).detach() for f in dataclasses.fields(render)
-                   if isinstance(getattr(render, f.name), Tensor)}
-    )
 
 
 def _psnr(mse: float) -> float:
