@@ -46,12 +46,6 @@ WITHIN_LAYER_FORBIDDEN = {
     ("kit", "backends"),
 }
 
-# Upward imports that exist today (importer, imported), removed by the service-layer refactor.
-KNOWN_VIOLATIONS = {
-    ("ablation", "cli"),
-}
-
-
 class Edge(NamedTuple):
     importer: str  # dotted module name
     line: int
@@ -165,25 +159,17 @@ def test_modules_import_only_their_own_or_lower_layers() -> None:
     wrong = []
     for edge in EDGES:
         pair = (component(edge.importer), component(edge.imported))
-        if pair in KNOWN_VIOLATIONS:
-            continue
         upward = _layer(pair[1]) < _layer(pair[0])
         if upward or pair in WITHIN_LAYER_FORBIDDEN:
             wrong.append(f"{edge}  ({pair[0]} -> {pair[1]})")
     assert not wrong, "imports against the layer order:\n" + "\n".join(wrong)
 
 
-def test_known_violations_still_exist() -> None:
-    """An entry of KNOWN_VIOLATIONS whose imports are gone must leave the list."""
-    present = {(component(e.importer), component(e.imported)) for e in EDGES}
-    assert KNOWN_VIOLATIONS <= present, f"remove from KNOWN_VIOLATIONS: {sorted(KNOWN_VIOLATIONS - present)}"
-
-
 def test_no_import_cycle_between_components() -> None:
     graph: dict[str, set[str]] = {}
     for edge in EDGES:
         pair = (component(edge.importer), component(edge.imported))
-        if pair[0] != pair[1] and pair not in KNOWN_VIOLATIONS:
+        if pair[0] != pair[1]:
             graph.setdefault(pair[0], set()).add(pair[1])
     cycle = _cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
