@@ -4,7 +4,7 @@ SCENE ?= glossy_plane_sphere
 OUT ?= out/demo
 EXTRAS ?= dev,sfm
 
-.PHONY: setup demo test bench
+.PHONY: setup demo test test-fast check-wheel bench
 
 setup:
 	@EXTRAS=$(EXTRAS) bash scripts/setup_env.sh
@@ -16,6 +16,15 @@ demo: setup
 # Two pytest workers on two cores; each worker single-threaded so they do not fight.
 test: setup
 	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -p no:cacheprovider
+
+# The inner loop: the suite without the tests marked slow (under a minute on 2 cores once the
+# numba kernels are compiled and cached).
+test-fast: setup
+	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -p no:cacheprovider -m "not slow"
+
+# sdist + wheel, the wheel installed into a fresh venv: `polargs --help` and every adapter import.
+check-wheel: setup
+	bash scripts/check_wheel.sh
 
 bench: setup
 	$(PY) bench/rasterizer.py
