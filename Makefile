@@ -4,7 +4,7 @@ SCENE ?= glossy_plane_sphere
 OUT ?= out/demo
 EXTRAS ?= dev,sfm,docs
 
-.PHONY: setup demo test docs bench
+.PHONY: setup demo test test-fast docs check-wheel bench
 
 setup:
 	@EXTRAS=$(EXTRAS) bash scripts/setup_env.sh
@@ -21,6 +21,15 @@ test: setup
 # (a broken link or anchor, a docstring that does not parse).
 docs: setup
 	$(PY) -m mkdocs build --strict
+
+# The inner loop: the suite without the tests marked slow (under a minute on 2 cores once the
+# numba kernels are compiled and cached).
+test-fast: setup
+	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -p no:cacheprovider -m "not slow"
+
+# sdist + wheel, the wheel installed into a fresh venv: `polargs --help` and every adapter import.
+check-wheel: setup
+	bash scripts/check_wheel.sh
 
 bench: setup
 	$(PY) bench/rasterizer.py

@@ -1,4 +1,4 @@
-"""The whole reference training step on CPU, against its parts and today's step (issue 9).
+"""The reference backend's whole training step on CPU, against its parts and a git revision.
 
 Scene: a bundled scene (``generate_scene``, default glossy_plane_sphere), 24 views 128x128; the
 Gaussians come from a short warm-up training (``TrainConfig.cpu`` schedule, capped at 6000) so
@@ -17,14 +17,15 @@ take turns, ``--rounds`` times, so that load changes on a shared machine hit all
 - base + hooks (SH 1): the Base step again, taking turns with the step with PolarHooks (PC, L_dn,
   L_scale on, Dense off; PolarConfig.synthetic()) from the same Gaussians, the pair of
   ``hooks_over_base`` (both pay alike for sharing the process);
-- reference: today's step as it was before issue 9, inside this package (kornia's SSIM, the torch
-  projection with its autograd graph, a float() of every figure and an MSE every step,
-  boolean-indexed density statistics), SH 1;
-- turns (with ``--reference-src DIR``, the package as it was before issue 9: ``git archive bfaaf45
-  src | tar -x -C DIR``), first in every round: its Base step and this package's (SH 1), each in a
-  worker process of its own, taking turns block by block, only one running at a time (the other
-  sleeps in ``read``): the ``speedup_vs_reference`` figure, a median over the block pairs like the
-  ratios within a group (without ``--reference-src``: the legacy step's mean over the Base step's);
+- turns (with ``--reference-rev REV`` or ``--reference-src DIR``), first in every round: the Base
+  step of the package at an older git revision and this package's (SH 1), each in a worker
+  process of its own, taking turns block by block, only one running at a time (the other sleeps
+  in ``read``): the ``speedup_vs_reference`` figure, a median over the block pairs like the
+  ratios within a group. The reference is a git revision, not a copy kept in this file: the
+  revision is frozen by definition and needs no upkeep when the package's internals move.
+  ``--reference-rev bfaaf45`` is the package before the fused training step (kornia's SSIM, the
+  torch projection with its autograd graph, a float() of every figure and an MSE every step,
+  boolean-indexed density statistics). Without a reference the figure is ``null``;
 - dense: one Dense call (all PatchMatch rounds, filters, seeding) on this scene, after a warm-up
   call; its share of a whole run with the paper's window (61 calls: 1k-7k every 100, or the CPU
   preset's 500-3500 every 50): ``61 t_dense / (iterations t_hooks + 61 t_dense)`` for
@@ -40,21 +41,27 @@ brackets, less sensitive to other processes). The ratios of two parts of one gro
 pair of blocks run back to back sees the same speed; the ratios of the means are printed too (and
 in the JSON's ``ratios_of_means``). The last line is one JSON object.
 
-    .venv/bin/python bench/train_step.py --reference-src DIR   # the issue's settings, 2 threads
-    .venv/bin/python bench/train_step.py --numba-layer omp --wait-policy none   # before issue 9
-    .venv/bin/python bench/train_step.py --equivalence 200   # new step vs old step, same seed
+    .venv/bin/python bench/train_step.py --reference-rev bfaaf45   # all figures, 2 threads
+    .venv/bin/python bench/train_step.py --only-contention --numba-layer omp   # contention loops only
+    .venv/bin/python bench/train_step.py --numba-layer omp --wait-policy none   # the older thread policy
+
+A check that it runs, in under a minute (tiny sizes; the figures mean nothing):
+
+    .venv/bin/python bench/train_step.py --views 6 --size 64 --gaussians 1000 --warmup-iterations 20
+        --steps 4 --block 2 --rounds 1 --dense-calls 1 --no-contention    (one command line)
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import io
 import json
 import os
 import resource
 import statistics
 import subprocess
 import sys
+import tarfile
 import tempfile
 import time
 from pathlib import Path
@@ -109,7 +116,7 @@ def _warm_params(args, views, path: Path) -> dict:
     return params
 
 
-def _trainer(args, views, params: dict, sh_degree: int, hooks=None, cls=None, policy: bool = True):
+def _trainer(args, views, params: dict, sh_degree: int, hooks=None, policy: bool = True):
     """A trainer at iteration START_ITER on the warm Gaussians (paper schedule, density on).
 
     ``policy=False`` for a package older than the thread policy (its environment still applies)."""
@@ -124,106 +131,13 @@ def _trainer(args, views, params: dict, sh_degree: int, hooks=None, cls=None, po
     raw = {k: params[k] for k in PARAM_NAMES}
     raw["sh_rest"] = raw["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]
     colors = (raw["sh_dc"][:, 0] * 0.28209479177387814 + 0.5).clamp(0, 1)
-    trainer = (cls or Trainer)(views, cfg, hooks=hooks, init_points=(raw["means"], colors))
+    trainer = Trainer(views, cfg, hooks=hooks, init_points=(raw["means"], colors))
     extent = float(params["extent"])
     trainer.model = GaussianModel(raw, sh_degree=sh_degree, extent=extent, lrs=trainer.model.lrs)
     trainer.model.active_sh_degree = sh_degree
     trainer.density = DensityControl(cfg.density.scaled(cfg.schedule_scale), trainer.extent)
     trainer.iteration = START_ITER
     return trainer
-
-
-# ------------------------------------------------------------------------ today's step
-def _kornia_loss(pred, target, ssim_weight: float):
-    """The colour loss as it was before issue 9: kornia's SSIM (conv2d + autograd)."""
-    import kornia
-
-    l1 = (pred - target).abs().mean(dim=0, keepdim=True)
-    window = min(11, 2 * min(pred.shape[-2:]) - 1)
-    ssim = kornia.metrics.ssim(pred[None], target[None], window)[0].mean(dim=0, keepdim=True)
-    loss = (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
-    return loss.sum() / loss[0].numel()
-
-
-def _legacy_update(density, render, width: int, height: int, iteration: int) -> None:
-    """DensityControl.update before issue 9 (boolean indexing)."""
-    import torch
-
-    if iteration >= density.config.refine_stop:
-        return
-    grad = render.means2d.grad.detach()
-    density._ensure(grad.shape[0], grad.device)
-    visible = render.radii > 0
-    scale = grad.new_tensor([width / 2.0, height / 2.0])
-    norms = (grad[visible] * scale).norm(dim=-1)
-    density.state["grad2d"][visible] += norms
-    density.state["count"][visible] += 1
-    density.state["max_radii"][visible] = torch.maximum(
-        density.state["max_radii"][visible], render.radii[visible].to(density.state["max_radii"])
-    )
-
-
-def legacy_trainer_class(reference: bool):
-    """A Trainer whose step is the step before issue 9. ``reference=True`` also uses kornia's SSIM
-    and the torch projection (today's path); ``False`` keeps the current loss and rasterizer (to
-    check that the new step changes no result)."""
-    import inspect
-
-    import torch
-
-    from polargs_plugin.backends.reference import trainer as tr
-    from polargs_plugin.backends.reference.rasterizer import rasterize
-
-    torch_projection = reference and "projection" in inspect.signature(rasterize).parameters
-
-    class LegacyTrainer(tr.Trainer):
-        def render(self, view):
-            kwargs = {"projection": "torch"} if torch_projection else {}
-            out = self.model.render(view, background=self.background, backend=self.config.backend, **kwargs)
-            return dataclasses.replace(out, color=out.color.clamp(0, 1))
-
-        def base_loss(self, image, target):
-            if reference:
-                return _kornia_loss(image, target, self.config.ssim_weight)
-            return super().base_loss(image, target)
-
-        def step(self):
-            self._prepare()
-            model = self.model
-            it = self.iteration + 1
-            model.update_learning_rate(it)
-            if it % self.sh_interval == 0:
-                model.active_sh_degree = min(model.active_sh_degree + 1, model.max_sh_degree)
-            index = self._next_view()
-            view, target = self.views[index], self.targets[index]
-            render = self.render(view)
-            loss = self.base_loss(render.color, target)
-            logs: dict[str, float] = {}
-            if self.hooks is not None:
-                extra, hook_logs = self.hooks.loss(it, view, render, model.state())
-                loss = loss + extra
-                logs.update({k: float(v) for k, v in (hook_logs or {}).items()})
-            loss.backward()
-            _legacy_update(self.density, render, view.width, view.height, it)
-            model.optimizer.step()
-            model.optimizer.zero_grad(set_to_none=True)
-            with torch.no_grad():
-                refined = self.density.step(model, it)
-                if self.hooks is not None:
-                    new = self.hooks.densify(it, view, self.render, model.state(), render=render.detached())
-                    if new is not None and len(new) > 0:
-                        model.append(new)
-                        self.density.pad(len(new))
-                        logs["appended"] = float(len(new))
-                mse = float(((render.color.detach() - target) ** 2).mean())
-            self.iteration = it
-            logs.update(loss=float(loss.detach()), psnr=tr._psnr(mse), num=float(model.num),
-                        **{k: float(v) for k, v in refined.items() if v})
-            self.last_logs = logs
-            return logs
-
-    LegacyTrainer.torch_projection = torch_projection
-    return LegacyTrainer
 
 
 # --------------------------------------------------------------------------------- workers
@@ -245,13 +159,13 @@ def _raster(trainer, weights) -> None:
 
 #: The measured parts, in groups that share one worker process and take turns in blocks of
 #: --block steps: the parts compared with each other (the rasterizer alone, the Base step and the
-#: step with hooks) see the same load changes. Each group, like the package before issue 9, runs
+#: step with hooks) see the same load changes. Each group, like the reference revision, runs
 #: in a process of its own: a process holding more trainers runs each of them slower (their data
 #: evict each other's from the caches), which a training never sees.
 #: The Base step in the hooks' process (``base1h``) is the reference of ``hooks_over_base`` only:
 #: ``base1``, the reference of the other ratios, runs as a training does, one trainer a process.
 GROUPS: tuple[tuple[str, ...], ...] = (
-    ("raster1", "base1"), ("base1h", "hooks1"), ("reference1",), ("raster3", "base3"),
+    ("raster1", "base1"), ("base1h", "hooks1"), ("raster3", "base3"),
 )
 
 
@@ -260,16 +174,14 @@ def _runner(args, views, params, name: str, hooks=None):
     from polargs_plugin.config import PolarConfig
     from polargs_plugin.hooks import PolarHooks
 
-    if name in ("base1", "base1h", "base3"):
+    if name != "hooks1":  # base1, base1h, base3
         return _trainer(args, views, params, int(name[4]))
-    if name == "hooks1":
-        if hooks is None:
-            polar = PolarConfig.synthetic()
-            polar.cache_dir = str(Path(args.tmp) / "maps")
-            polar.densify.enabled = False
-            hooks = PolarHooks(polar)
-        return _trainer(args, views, params, 1, hooks=hooks)
-    return _trainer(args, views, params, 1, cls=legacy_trainer_class(reference=True))
+    if hooks is None:
+        polar = PolarConfig.synthetic()
+        polar.cache_dir = str(Path(args.tmp) / "maps")
+        polar.densify.enabled = False
+        hooks = PolarHooks(polar)
+    return _trainer(args, views, params, 1, hooks=hooks)
 
 
 def worker_measure(args) -> dict:
@@ -321,8 +233,6 @@ def worker_measure(args) -> dict:
                         "median": statistics.median(walls),
                         "blocks": [statistics.fmean(walls[i:i + args.block]) for i in range(0, len(walls), args.block)]}
     result["num_gaussians"] = {k: t.model.num for k, t in runners.items()}
-    if "reference1" in runners:
-        result["reference_torch_projection"] = bool(type(runners["reference1"]).torch_projection)
     result["peak_rss_mib"] = _rss_mib()
     return result
 
@@ -355,10 +265,10 @@ def _measure_dense(args, views, params) -> dict:
 def worker_turns(args) -> dict:
     """The Base step (SH 1) in blocks of ``--block`` steps, one block for each line read from
     stdin (one JSON line of the block's wall and CPU seconds written back), until stdin closes.
-    Two of these take turns (:func:`_take_turns`): this package's and, with ``--reference-src``,
-    the package as it was before issue 9 (``git archive bfaaf45 src | tar -x -C DIR``: today's
-    step exactly, kornia SSIM, torch projection and old compositing included). Same warm
-    Gaussians, same environment (thread counts, wait policy); the one waiting sleeps in ``read``."""
+    Two of these take turns (:func:`_take_turns`): this package's and the reference revision's
+    (``--reference-rev`` / ``--reference-src``: the package's source at that revision, its own
+    training step exactly). Same warm Gaussians, same environment (thread counts, wait policy);
+    the one waiting sleeps in ``read``."""
     import polargs_plugin
 
     old = bool(args.reference_src)
@@ -446,7 +356,7 @@ def _run_workers(args, mode: str, count: int, options: list[str] | None = None) 
 
 
 def _take_turns(args) -> dict:
-    """This package's Base step and the package's before issue 9 (``--reference-src``), each in a
+    """This package's Base step and the reference revision's (``--reference-src``), each in a
     worker process of its own (:func:`worker_turns`), taking turns block by block, the reference
     first in each pair: only one of them runs at any time, and a pair of blocks sees the same
     machine speed. Returns each worker's blocks (mean wall seconds) and summary."""
@@ -507,12 +417,12 @@ def paired_ratio(blocks: list[float], reference_blocks: list[float]) -> float:
 
 
 def _measure_groups(args) -> tuple[list[dict], dict]:
-    """Every group of GROUPS in a worker of its own, ``--rounds`` times in turn (with the package
-    before issue 9 and this one taking turns first in each round, :func:`_take_turns`), then one
+    """Every group of GROUPS in a worker of its own, ``--rounds`` times in turn (with the reference
+    revision and this package taking turns first in each round, :func:`_take_turns`), then one
     Dense worker. Returns the rounds of turns and, per part, the mean wall / CPU time and the
     median over the rounds, plus the workers' details."""
     turns, runs, num_gaussians, rss = [], {}, {}, []
-    threads = torch_projection = None
+    threads = None
     for _ in range(args.rounds):
         if args.reference_src:
             turns.append(_take_turns(args))
@@ -524,53 +434,32 @@ def _measure_groups(args) -> tuple[list[dict], dict]:
             num_gaussians.update(out["num_gaussians"])
             rss.append(out["peak_rss_mib"])
             threads = out["threads"]
-            torch_projection = out.get("reference_torch_projection", torch_projection)
     dense = _run_workers(args, "measure", 1, ["--group", "dense"])[0]
     m = {name: {key: statistics.fmean(r[key] for r in rs) for key in ("wall", "cpu", "median")}
          for name, rs in runs.items()}
     for name, rs in runs.items():
         m[name]["blocks"] = [block for r in rs for block in r["blocks"]]  # in order, round after round
     m.update(dense=dense["dense"], threads=threads, num_gaussians=num_gaussians,
-             reference_torch_projection=torch_projection, peak_rss_mib=max(rss + [dense["peak_rss_mib"]]))
+             peak_rss_mib=max(rss + [dense["peak_rss_mib"]]))
     return turns, m
+
+
+def _extract_revision(revision: str, into: Path) -> Path:
+    """The ``src`` folder of this repository at git revision ``revision``, extracted under
+    ``into``; the reference package of :func:`_take_turns`."""
+    repo = Path(__file__).resolve().parent.parent
+    archive = subprocess.run(["git", "-C", str(repo), "archive", revision, "src"], check=False,
+                             capture_output=True)
+    if archive.returncode != 0:
+        raise SystemExit(f"error: --reference-rev {revision}: {archive.stderr.decode().strip()}")
+    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
+        tar.extractall(into, filter="data")
+    return into / "src"
 
 
 def _prepare_warm(args) -> None:
     """Train the warm model once (in a worker, with the policy's environment)."""
     subprocess.run(_worker_cmd(args, "prepare"), check=True, env=_worker_env(args), capture_output=True)
-
-
-def equivalence(args) -> int:
-    """New step vs the step before issue 9 (same loss and rasterizer), and vs today's whole path."""
-    import torch
-
-    from polargs_plugin.backends.reference.model import PARAM_NAMES
-    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
-
-    _policy(args).apply()
-    views = _scene(args).views
-    cfg = TrainConfig.cpu(iterations=args.equivalence, progress=False, threads=_policy(args))
-    runs = {"new": Trainer, "old step": legacy_trainer_class(False), "today's path": legacy_trainer_class(True)}
-    curves, params = {}, {}
-    for name, cls in runs.items():
-        trainer = cls(views, cfg)
-        curves[name] = [float(trainer.step()["loss"]) for _ in range(args.equivalence)]
-        params[name] = {k: getattr(trainer.model, k).detach().clone() for k in PARAM_NAMES}
-        print(f"{name:14s}: {args.equivalence} iterations, {trainer.model.num} Gaussians, last loss {curves[name][-1]:.6f}")
-    ok = True
-    for other in ("old step", "today's path"):
-        diff = max(abs(a - b) for a, b in zip(curves["new"], curves[other]))
-        rel = max(abs(a - b) / max(abs(b), 1e-12) for a, b in zip(curves["new"], curves[other]))
-        same = all(p.shape == q.shape and torch.equal(p, q) for p, q in zip(params["new"].values(), params[other].values()))
-        first = next((i + 1 for i, (a, b) in enumerate(zip(curves["new"], curves[other])) if abs(a - b) > 1e-6 * abs(b)),
-                     None)
-        print(f"new vs {other:13s}: loss curve max |diff| {diff:.3e} (relative {rel:.3e}), first iteration "
-              f"differing by more than 1e-6 relative: {first}, first-iteration |diff| "
-              f"{abs(curves['new'][0] - curves[other][0]):.2e}; parameters bitwise equal: {same}")
-        if other == "old step":
-            ok = ok and same and diff == 0.0
-    print(json.dumps({"equivalent_to_old_step": ok, "iterations": args.equivalence}))
-    return 0 if ok else 1
 
 
 def main() -> int:
@@ -594,12 +483,14 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="contention: measured seconds per loop")
     parser.add_argument("--no-contention", action="store_true")
     parser.add_argument("--only-contention", action="store_true", help="only the contention loops (quick policy comparisons)")
-    parser.add_argument("--equivalence", type=int, default=0, metavar="N",
-                        help="only check the new step against the old one over N iterations (TrainConfig.cpu)")
-    parser.add_argument("--reference-src", metavar="DIR",
-                        help="the package before issue 9 (DIR/polargs_plugin, e.g. from `git archive bfaaf45 src`): "
-                        "its Base step and this package's take turns block by block in two worker processes, "
-                        "the pairs give speedup_vs_reference (without it, the in-process legacy step is the reference)")
+    reference = parser.add_mutually_exclusive_group()
+    reference.add_argument("--reference-rev", metavar="REV",
+                           help="the reference for speedup_vs_reference: this repository's package at git revision "
+                           "REV (e.g. bfaaf45, the package before the fused training step); its Base step and this "
+                           "package's take turns block by block in two worker processes")
+    reference.add_argument("--reference-src", metavar="DIR",
+                           help="as --reference-rev, from a folder already extracted (DIR/polargs_plugin, e.g. "
+                           "`git archive REV src | tar -x -C PARENT`, DIR = PARENT/src)")
     parser.add_argument("--worker", choices=("prepare", "measure", "loop", "turns"), help=argparse.SUPPRESS)
     parser.add_argument("--tmp", help=argparse.SUPPRESS)
     parser.add_argument("--start-at", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -619,13 +510,13 @@ def main() -> int:
             work = {"measure": worker_measure, "loop": worker_loop, "turns": worker_turns}[args.worker]
             print(json.dumps(work(args)))
         return 0
-    if args.equivalence:
-        return equivalence(args)
 
     started = time.perf_counter()
     load_before = _load()
     with tempfile.TemporaryDirectory() as tmp:
         args.tmp = tmp
+        if args.reference_rev:
+            args.reference_src = str(_extract_revision(args.reference_rev, Path(tmp) / "reference"))
         _prepare_warm(args)
         if args.only_contention:
             alone = _run_workers(args, "loop", 1)[0]
@@ -653,32 +544,30 @@ def main() -> int:
                                      if contention else []))
     single_rss = contention["alone"]["peak_rss_mib"] if contention else m["peak_rss_mib"]
     paired = lambda part, reference: paired_ratio(m[part]["blocks"], m[reference]["blocks"])  # noqa: E731
-    # The reference's and this package's Base step taking turns (with --reference-src), block by block.
+    # The reference revision's and this package's Base step taking turns, block by block.
     turn_blocks = {name: [b for t in turns for b in t["blocks"][name]] for name in ("reference", "base")}
     turn_means = {name: statistics.fmean(turn_blocks[name]) for name in turn_blocks} if turns else {}
     figures = {
         "step_over_raster": paired("base1", "raster1"),
         "step_over_raster_sh3": paired("base3", "raster3"),
-        "speedup_vs_reference": (paired_ratio(turn_blocks["reference"], turn_blocks["base"]) if turns
-                                 else wall("reference1") / wall("base1")),
-        "speedup_vs_legacy_step": wall("reference1") / wall("base1"),
+        "speedup_vs_reference": paired_ratio(turn_blocks["reference"], turn_blocks["base"]) if turns else None,
         "hooks_over_base": paired("hooks1", "base1h"),
         "ratios_of_means": {"step_over_raster": wall("base1") / wall("raster1"),
                             "step_over_raster_sh3": wall("base3") / wall("raster3"),
                             "hooks_over_base": wall("hooks1") / wall("base1h"),
                             "speedup_vs_reference": (turn_means["reference"] / turn_means["base"] if turns
-                                                     else wall("reference1") / wall("base1"))},
+                                                     else None)},
         "dense_share": share,
         "contention_slowdown": contention["slowdown"] if contention else None,
         "contention_cpu_slowdown": contention["cpu_slowdown"] if contention else None,
         "peak_rss_mib": single_rss,
         "peak_rss_mib_all_workers": rss,
-        "seconds": {k: round(wall(k), 5) for k in ("raster1", "base1", "base1h", "hooks1", "reference1", "raster3", "base3")},
+        "seconds": {k: round(wall(k), 5) for k in ("raster1", "base1", "base1h", "hooks1", "raster3", "base3")},
         "dense_call_s": round(t_dense, 3),
         "iterations_for_dense_share": args.iterations,
         "threads": m["threads"],
         "num_gaussians": m["num_gaussians"]["base1"],
-        "reference_torch_projection": m["reference_torch_projection"],
+        "reference_revision": args.reference_rev,
         "reference_package": turns[0]["summaries"]["reference"]["package"] if turns else None,
         "turns_seconds": {name: round(value, 5) for name, value in turn_means.items()},
         "load_before": load_before,
@@ -696,11 +585,11 @@ def main() -> int:
     rows = [("raster1", "rasterizer fwd+bwd alone, SH 1"), ("base1", "Base step, SH 1"),
             ("base1h", "Base step beside the hooks step, SH 1"),
             ("hooks1", "step with PolarHooks (PC, L_dn, L_scale), SH 1"),
-            ("reference1", "legacy step in this package (kornia SSIM), SH 1"),
             ("raster3", "rasterizer fwd+bwd alone, SH 3"), ("base3", "Base step, SH 3")]
     for key, label in rows:
         print(f"{label:44s} {m[key]['wall']:8.4f} {m[key]['cpu']:9.4f} {m[key]['median']:8.4f}")
-    for name, label in (("reference", "package before issue 9, Base step, SH 1 [2]"), ("base", "Base step taking turns with it, SH 1 [2]")):
+    for name, label in (("reference", "reference revision, Base step, SH 1 [2]"),
+                        ("base", "Base step taking turns with it, SH 1 [2]")):
         if turns:
             summaries = [t["summaries"][name] for t in turns]
             print(f"{label:44s} {turn_means[name]:8.4f} {statistics.fmean(x['cpu'] for x in summaries):9.4f} "
@@ -715,8 +604,7 @@ def main() -> int:
     targets = [
         ("step / raster fwd+bwd (SH 1) [1]", figures["step_over_raster"], "<= 1.5"),
         ("step / raster fwd+bwd (SH 3) [1]", figures["step_over_raster_sh3"], "<= 1.5"),
-        ("today's step / Base step" + (" (package before issue 9) [2]" if turns else " (legacy step)"),
-         figures["speedup_vs_reference"], ">= 4"),
+        ("reference revision's step / Base step [2]", figures["speedup_vs_reference"], ">= 4 vs bfaaf45"),
         ("hooks step / Base step [1]", figures["hooks_over_base"], "<= 1.15"),
         (f"Dense share of a {args.iterations}-iteration run", figures["dense_share"], "<= 0.25"),
         ("contention slowdown (2 trainings / alone)", figures["contention_slowdown"], "<= 2.5"),

@@ -87,6 +87,7 @@ def test_usage_errors_are_one_line(tmp_path, capsys):
     assert capsys.readouterr().err.strip() == f"error: {tmp_path / 'file'}: exists and is not a folder"
 
 
+@pytest.mark.slow
 def test_pool_reports_failed_cells_with_logs(tmp_path):
     """The process-pool path (spawned workers, each given one "GPU" as on a multi-GPU machine)
     with two cells that fail fast: both are reported with their logs, nothing else is left behind."""
@@ -104,6 +105,7 @@ def test_pool_reports_failed_cells_with_logs(tmp_path):
         run_cell(cells[0])
 
 
+@pytest.mark.slow
 def test_mesh_error_is_the_exact_signed_distance(tmp_path):
     """mesh_error.npz of the report: vertices of spheres of radius 1.05 and 0.95 against the unit GT
     sphere are +0.05 / -0.05 from it (analytic), up to the GT's tessellation; the nearest of many GT
@@ -280,6 +282,7 @@ def _check_run(folder: Path, variant: str) -> dict:
     return summary
 
 
+@pytest.mark.slow
 def test_demo_writes_runs_results_and_report(demo_dir, capsys):
     runs = {p.name: p for p in demo_dir.iterdir() if (p / "summary.json").is_file()}
     assert set(runs) == {f"{SCENE}__base__hull__s0", f"{SCENE}__full__hull__s0"}
@@ -299,6 +302,7 @@ def test_demo_writes_runs_results_and_report(demo_dir, capsys):
     assert "polargs demo" in report and not list(demo_dir.glob(".tmp-*"))
 
 
+@pytest.mark.slow
 def test_ablate_resumes_and_reports_failures(demo_dir, capsys):
     """Same folder as the demo: base is skipped, reg trains, a missing dataset fails with its log;
     a second invocation trains nothing."""
@@ -347,6 +351,7 @@ def test_sfm_init_falls_back_to_the_hull_and_says_so(tmp_path):
 
 
 # ------------------------------------------------------------------------ reader options
+@pytest.mark.slow
 def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, capsys):
     """--format / --pattern / --bit-depth / --no-pattern-check of `polargs ablate` become the cell's
     ``reader`` (plain data, JSON round trip), reach load_dataset, and are recorded in summary.json
@@ -425,6 +430,7 @@ def _running(pid: int) -> bool:
     return False
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
 def test_a_grid_stopped_by_sigterm_leaves_no_worker_running(tmp_path):
     """SIGTERM to `polargs ablate` alone (a scheduler's timeout, `kill`): its pool workers notice

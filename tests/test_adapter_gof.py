@@ -214,6 +214,7 @@ def test_append_pads_every_statistic_recomputes_the_filter_and_renders(scene) ->
         gof.render(trainer_scene.cameras[0], model, None, torch.zeros(3), kernel_size=KERNEL_SIZE)
 
 
+@pytest.mark.slow
 def test_fifty_steps_lower_the_loss_and_append_with_consistent_state(scene) -> None:
     trainer_scene, model = _trainer(scene)
     render = RecordingRender()

@@ -119,7 +119,7 @@ def test_extra_passes_leave_the_densification_statistics_alone(scene) -> None:
     assert model._rotation.grad is not None and float(model._rotation.grad.abs().sum()) > 0
 
 
-@pytest.mark.parametrize("version", [2024, 2023])
+@pytest.mark.parametrize("version", [2024, pytest.param(2023, marks=pytest.mark.slow)])
 def test_fifty_steps_lower_the_loss_and_append_with_consistent_state(scene, version) -> None:
     trainer_scene, model = _trainer(scene, version=version)
     adapter = GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=_config())

@@ -229,6 +229,7 @@ class _Spy:
 
 
 # ------------------------------------------------------------------------------ the loops
+@pytest.mark.slow
 def test_default_strategy_training_with_dense(scene):
     views = scene.views
     params, optimizers = _splats(views)
@@ -288,6 +289,7 @@ def test_default_strategy_training_with_dense(scene):
     assert last < 0.8 * first, (first, last)
 
 
+@pytest.mark.slow
 def test_mcmc_composition_pads_nothing_and_respects_cap(scene, mcmc_on_cpu):
     views = scene.views
     params, optimizers = _splats(views, n=120, seed=1)

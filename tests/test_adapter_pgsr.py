@@ -235,6 +235,7 @@ def _train(scene, model, trainer_scene, adapter, app_model, steps=50, single_vie
     return losses, appended
 
 
+@pytest.mark.slow
 def test_fifty_steps_lower_the_loss_and_append_with_consistent_state(scene) -> None:
     trainer_scene, model = _trainer(scene)
     app_model = pgsr.AppModel(len(scene.views))
@@ -265,6 +266,7 @@ def test_fifty_steps_lower_the_loss_and_append_with_consistent_state(scene) -> N
     assert torch.isfinite(model.get_xyz).all()
 
 
+@pytest.mark.slow
 def test_appends_stop_at_max_all_points(scene) -> None:
     trainer_scene, model = _trainer(scene, max_all_points=405)
     app_model = pgsr.AppModel(len(scene.views))

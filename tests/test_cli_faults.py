@@ -132,6 +132,7 @@ def test_help_imports_no_subcommand_and_lists_every_command():
     assert {c.dest: c.help for c in sub._choices_actions} == {k: v for k, v in _COMMANDS.items() if k in sub.choices}
 
 
+@pytest.mark.slow
 def test_errors_are_one_line_without_traceback_in_a_real_process(tmp_path):
     settings = tmp_path / "s.json"
     settings.write_text(json.dumps({"trian": {}}))

@@ -110,6 +110,7 @@ def debug_grid(tmp_path_factory):
     return out, status, stdout.getvalue(), stderr.getvalue()
 
 
+@pytest.mark.slow
 def test_debug_array_failure_resubmit_and_retry(debug_grid, monkeypatch, capsys):
     """One cell raises and is reported failed with its log, the rest finish; a resubmission runs
     nothing; after the fix --retry-failed runs only that cell."""
@@ -152,6 +153,7 @@ def test_debug_array_failure_resubmit_and_retry(debug_grid, monkeypatch, capsys)
     assert "| reg |" in (out / "results.md").read_text()
 
 
+@pytest.mark.slow
 def test_preempted_local_job_resumes_to_the_same_figures(debug_grid, tmp_path, capsys):
     """submitit's local executor: the job is preempted (USR2, as Slurm sends) after its first
     periodic checkpoint, requeued by submitit, resumes from the checkpoint and ends with the

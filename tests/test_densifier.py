@@ -1,5 +1,6 @@
 """PolarDensifier on an analytic plane: schedule, hole filling, N_opt, checkpointing."""
 
+import pytest
 import torch
 
 from polargs_plugin.config import PolarConfig
@@ -58,6 +59,7 @@ def test_schedule_follows_config():
     assert not dens.should_run(d.start_iter)
 
 
+@pytest.mark.slow
 def test_fills_a_render_hole_with_gaussians_on_the_plane():
     views, renders, maps, render_fn, cfg = _setup()
     dens = PolarDensifier(cfg, views, maps)
@@ -152,6 +154,7 @@ print(json.dumps({"params": digest.hexdigest(), "num": trainer.model.num,
 """
 
 
+@pytest.mark.slow
 def test_two_full_runs_with_the_same_seed_are_bit_identical():
     """A Full run (PC + Dense scheduled every 10 iterations) repeated in a fresh process,
     with numba and torch on 2 threads, gives bit-identical parameters."""

@@ -43,6 +43,7 @@ def test_fused_equals_torch_operations_with_holes_and_zero_normals(dtype, tol):
         assert torch.allclose(got, want, rtol=tol, atol=tol * float(want.abs().max())), float((got - want).abs().max())
 
 
+@pytest.mark.slow
 def test_gradcheck_and_dispatch():
     depth, normal, alpha = _inputs(height=9, width=8, seed=1)
     depth.requires_grad_(), normal.requires_grad_()

@@ -69,6 +69,7 @@ def sphere_inputs(background: float = 0.0):
     return depths, [colour] * len(eyes), [torch.from_numpy(K)] * len(eyes), w2cs, masks
 
 
+@pytest.mark.slow
 def test_tsdf_sphere_within_one_and_a_half_voxels():
     voxel = 0.02
     # A background wall at depth 4 in every view: the masks must remove it.
@@ -184,6 +185,7 @@ class AnalyticSphereModel:
         return RenderOut(color=colour, depth=depth, normal=normal, alpha=alpha, median_depth=depth)
 
 
+@pytest.mark.slow
 def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
     import json
 

@@ -62,6 +62,7 @@ def test_identical_meshes_give_sampling_noise_only():
     assert cd["fscore"] > 0.99
 
 
+@pytest.mark.slow
 def test_plane_offset_along_normal():
     cd = chamfer_distance(square(0.03), square(0.0), num_samples=N, max_dist=1.0, fscore_threshold=0.01)
     assert cd["accuracy"] == pytest.approx(0.03, abs=1e-3)
@@ -112,6 +113,7 @@ def silhouette_view(eye: np.ndarray, size: int = 64, focal: float = 40.0) -> Vie
                 mask=torch.from_numpy(inside[None]))
 
 
+@pytest.mark.slow
 def test_cull_to_masks_keeps_object_drops_floater():
     # The floaters project into every image (half field of view 38.7 deg) but outside the
     # sphere's silhouette (18.4 deg), at 26-34 deg from the optical axis.
@@ -187,6 +189,7 @@ def test_normal_mae_errors():
         normal_angle_errors(n, n, torch.ones(4, 4, dtype=torch.bool))
 
 
+@pytest.mark.slow
 def test_eval_command_on_mesh_files(tmp_path, capsys):
     import json
 
@@ -225,6 +228,7 @@ def test_uncapped_and_signed_distance_fields():
     assert out["region"] == "all" and out["gt_kept_fraction"] == 1.0
 
 
+@pytest.mark.slow
 def test_object_region_culls_floor_and_unseen_gt():
     """Region "object" on glossy_plane_sphere: the predicted floor is culled to the sphere's
     silhouettes and the GT's never-seen bottom is left out of completeness."""
@@ -265,6 +269,7 @@ def cull_to_masks_direct(points, views, dilation_px, masks, require_seen):
     return keep & seen if require_seen else keep
 
 
+@pytest.mark.slow
 def test_chamfer_equals_the_direct_computation_and_the_analytic_distances():
     """The fast path (SampleIndex, culling only the points still kept) gives the very floats of the
     direct computation (cKDTree, every point in every view) on a prediction that is hard for a

@@ -266,6 +266,7 @@ def _look_at_view(eye, size=48, f=60.0, name="v", radius=None) -> View:
     return View(name=name, K=K, world_to_camera=w2c, stokes=stokes, mask=mask)
 
 
+@pytest.mark.slow
 def test_visual_hull_points_lie_near_the_sphere():
     r = 0.5
     views = []

@@ -23,7 +23,7 @@ def check_same_as_ckdtree(points: np.ndarray, queries: np.ndarray, **kw) -> np.n
     return distance
 
 
-@pytest.mark.parametrize("leaf_size", [1, 4, 32])
+@pytest.mark.parametrize("leaf_size", [pytest.param(1, marks=pytest.mark.slow), 4, 32])
 def test_sphere_samples_queried_from_inside_outside_and_on_them(leaf_size):
     points = unit_sphere_samples(20_000, 0)
     rng = np.random.default_rng(1)

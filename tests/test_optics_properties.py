@@ -94,6 +94,7 @@ def test_aolp_never_reaches_pi_for_tiny_negative_angles(s2, s1):
     st.floats(0.0, 1.0),
     st.sampled_from(["mono", "rgb"]),
 )
+@pytest.mark.slow
 def test_demosaic_is_linear(x, y, a, pattern):
     """demosaic(a x + (1 - a) y) = a demosaic(x) + (1 - a) demosaic(y) for float raws in [0, 1]."""
     b = 1.0 - a

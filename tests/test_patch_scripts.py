@@ -435,6 +435,7 @@ def test_result_that_would_not_compile_is_refused(tmp_path: Path) -> None:
 # the scripts as the user runs them
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", [CASES[1], CASES[2], CASES[3]], ids=[IDS[1], IDS[2], IDS[3]])
 def test_script_runs_as_a_subprocess(case: Case, tmp_path: Path) -> None:
     checkout = copy_fixture(tmp_path, case.fixture)

@@ -191,6 +191,7 @@ def _row_case(rng: np.random.Generator, c0: float) -> tuple:
     return c0, k1, k0, mx, opacity, ulo, ulo + int(rng.integers(0, 16))
 
 
+@pytest.mark.slow
 def test_row_falloffs_are_exp_on_exactly_the_contributing_span() -> None:
     """The numba compositing's exp(-sigma) along a row (one exponential at the row's peak, then a
     multiplication a pixel) against numpy's exponential at every pixel: the span is exactly the

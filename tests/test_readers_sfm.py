@@ -45,6 +45,7 @@ def _render(w2c, textures):
     return image
 
 
+@pytest.mark.slow
 def test_sfm_recovers_cameras_up_to_similarity(tmp_path):
     rng = np.random.default_rng(3)
     textures = [_texture(rng) for _ in range(3)]

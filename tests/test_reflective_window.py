@@ -41,6 +41,7 @@ def test_fused_equals_the_torch_operations(monkeypatch, dtype, tol, ssim_weight)
     assert fused_pred.grad.abs().sum() > 0
 
 
+@pytest.mark.slow
 def test_gradcheck():
     targets, pred = _targets(torch.float64, seed=5)
     inputs = (targets.windows, targets.pixels, targets.weights, targets.targets, targets.values,

@@ -102,7 +102,8 @@ class TestSSIMValues:
 
 
 class TestSSIMGradients:
-    @pytest.mark.parametrize("shape", [(1, 2, 7, 9), (3, 6, 6), (2, 11, 8)])
+    @pytest.mark.parametrize("shape", [(1, 2, 7, 9), pytest.param((3, 6, 6), marks=pytest.mark.slow),
+                                       pytest.param((2, 11, 8), marks=pytest.mark.slow)])
     def test_gradcheck(self, shape):
         img1, img2 = _images(shape, torch.float64, seed=sum(shape))
         img1.requires_grad_()

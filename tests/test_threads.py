@@ -129,6 +129,7 @@ _KERNEL = """
 """
 
 
+@pytest.mark.slow
 def test_policy_applied_in_a_fresh_process_selects_the_layer_and_counts():
     out = _run(
         """
@@ -146,6 +147,7 @@ def test_policy_applied_in_a_fresh_process_selects_the_layer_and_counts():
     assert any("torch was imported" in n for n in out["notes"])  # torch came first in this script
 
 
+@pytest.mark.slow
 def test_layer_already_started_is_reported_not_changed():
     out = _run(
         """
@@ -160,6 +162,7 @@ def test_layer_already_started_is_reported_not_changed():
     assert out["layer"] == "workqueue" and any("already 'workqueue'" in n for n in out["notes"])
 
 
+@pytest.mark.slow
 def test_environment_before_torch_gives_no_note():
     out = _run(
         """

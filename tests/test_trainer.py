@@ -342,6 +342,7 @@ def test_base_loss_is_vanilla_colour_loss_on_the_background_target(views):
     assert torch.equal(trainer.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.3))
 
 
+@pytest.mark.slow
 def test_lazy_step_logs_equal_the_figures_computed_every_step(views):
     """StepLogs read late (or never) give the figures the eager step computed: loss, PSNR of that
     step's render against its target, hook logs, counts; train() reports the window's mean loss."""

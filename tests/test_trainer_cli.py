@@ -106,6 +106,7 @@ def _summary(run):
     return json.loads((run / "summary.json").read_text())
 
 
+@pytest.mark.slow
 def test_preset_real_and_schedule_are_separate_axes(fake_dataset, tmp_path, capsys):
     run = tmp_path / "real"
     assert main(["train", "fake", "--out", str(run), "--iters", "2", "--quiet", "--preset", "real", "--no-dense"]) == 0
@@ -178,6 +179,7 @@ def test_config_file_sets_any_field_and_unknown_keys_name_key_and_file(fake_data
 
 
 # ------------------------------------------------------------------ maps cache
+@pytest.mark.slow
 def test_train_reuses_cached_maps_and_says_so(fake_dataset, tmp_path, capsys):
     first = tmp_path / "first"
     assert main(["train", "fake", "--out", str(first), "--iters", "1", "--quiet", "--no-dense"]) == 0
@@ -218,6 +220,7 @@ def _kill_at(monkeypatch, iteration: int, signum: int) -> None:
     monkeypatch.setattr(Trainer, "step", step_and_signal)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_interrupt_writes_a_final_checkpoint_and_says_how_to_resume(fake_dataset, tmp_path, capsys, monkeypatch, signum, status):
     run = tmp_path / "run"
