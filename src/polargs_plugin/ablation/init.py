@@ -60,61 +60,19 @@ def sfm_points(views, max_reprojection_px: float = 1.5, min_angle_deg: float = 2
         import pycolmap
     except ImportError as err:  # the caller records the fallback
         raise NotImplementedError(f"pycolmap is not installed (pip install polargs_plugin[sfm]): {err}") from None
-    import cv2
-
     names = [f"{i:04d}.png" for i in range(len(views))]
     points, colors = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        (tmp / "images").mkdir()
-        pictures = []
-        for name, view in zip(names, views):
-            picture = _picture(view)
-            pictures.append(picture)
-            cv2.imwrite(str(tmp / "images" / name), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
-        database = tmp / "database.db"
-        threads = max(1, torch.get_num_threads())  # the run's thread budget, not every core
-        extraction, matching = pycolmap.FeatureExtractionOptions(), pycolmap.FeatureMatchingOptions()
-        extraction.num_threads = matching.num_threads = threads
-        with contextlib.suppress(AttributeError):
-            pycolmap.logging.minloglevel = 2  # errors only: glog writes to the terminal directly
-        pycolmap.extract_features(database, tmp / "images", image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                                  reader_options=pycolmap.ImageReaderOptions(camera_model="PINHOLE"),
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
-        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
-        db = pycolmap.Database.open(str(database))
-        try:
-            index = {image.image_id: names.index(image.name) for image in db.read_all_images()}
-            keypoints = {image_id: np.asarray(db.read_keypoints(image_id))[:, :2] for image_id in index}
-            pair_ids, geometries = db.read_two_view_geometries()
-        finally:
-            db.close()
-        for pair_id, geometry in zip(pair_ids, geometries):
+        index, keypoints, pairs = _matches(pycolmap, Path(tmp), views, names)
+        for pair_id, geometry in pairs:
             matches = np.asarray(geometry.inlier_matches)
             if len(matches) == 0:
                 continue
             id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-            i, j = index[id1], index[id2]
+            vi, vj = views[index[id1]], views[index[id2]]
             # COLMAP keypoints: pixel (0, 0) spans [0, 1) with its centre at 0.5, as ours
             x1, x2 = keypoints[id1][matches[:, 0]], keypoints[id2][matches[:, 1]]
-            vi, vj = views[i], views[j]
-            Pi = vi.K.double().cpu().numpy() @ vi.world_to_camera.double().cpu().numpy()[:3]
-            Pj = vj.K.double().cpu().numpy() @ vj.world_to_camera.double().cpu().numpy()[:3]
-            X = _triangulate(Pi, Pj, x1.astype(np.float64), x2.astype(np.float64))
-            keep = np.ones(len(X), dtype=bool)
-            for P, x, view in ((Pi, x1, vi), (Pj, x2, vj)):
-                h = np.c_[X, np.ones(len(X))] @ P.T
-                keep &= h[:, 2] > 1e-9
-                proj = h[:, :2] / np.where(np.abs(h[:, 2:]) > 1e-12, h[:, 2:], 1e-12)
-                keep &= np.linalg.norm(proj - x, axis=1) <= max_reprojection_px
-                if view.mask is not None:
-                    col = np.clip(x[:, 0].astype(int), 0, view.width - 1)
-                    row = np.clip(x[:, 1].astype(int), 0, view.height - 1)
-                    keep &= view.mask[0].cpu().numpy()[row, col]
-            ci, cj = vi.camera_center.double().cpu().numpy(), vj.camera_center.double().cpu().numpy()
-            a, b = X - ci, X - cj
-            cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
-            keep &= cos <= np.cos(np.deg2rad(min_angle_deg))
+            X, keep = _triangulated(vi, vj, x1, x2, max_reprojection_px, min_angle_deg)
             if not keep.any():
                 continue
             points.append(X[keep])
@@ -124,3 +82,56 @@ def sfm_points(views, max_reprojection_px: float = 1.5, min_angle_deg: float = 2
     if not points:
         return torch.zeros(0, 3), torch.zeros(0, 3)
     return torch.from_numpy(np.concatenate(points)).float(), torch.from_numpy(np.concatenate(colors)).float()
+
+
+def _matches(pycolmap, tmp: Path, views, names: list[str]):
+    """SIFT features of every view and their exhaustive two-view matches (COLMAP's database in
+    ``tmp``): (image id -> view index, image id -> (K, 2) keypoints, [(pair id, two-view geometry)])."""
+    import cv2
+    import torch
+
+    (tmp / "images").mkdir()
+    for name, view in zip(names, views):
+        cv2.imwrite(str(tmp / "images" / name), cv2.cvtColor(_picture(view), cv2.COLOR_RGB2BGR))
+    database = tmp / "database.db"
+    threads = max(1, torch.get_num_threads())  # the run's thread budget, not every core
+    extraction, matching = pycolmap.FeatureExtractionOptions(), pycolmap.FeatureMatchingOptions()
+    extraction.num_threads = matching.num_threads = threads
+    with contextlib.suppress(AttributeError):
+        pycolmap.logging.minloglevel = 2  # errors only: glog writes to the terminal directly
+    pycolmap.extract_features(database, tmp / "images", image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                              reader_options=pycolmap.ImageReaderOptions(camera_model="PINHOLE"),
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+    db = pycolmap.Database.open(str(database))
+    try:
+        index = {image.image_id: names.index(image.name) for image in db.read_all_images()}
+        keypoints = {image_id: np.asarray(db.read_keypoints(image_id))[:, :2] for image_id in index}
+        pair_ids, geometries = db.read_two_view_geometries()
+    finally:
+        db.close()
+    return index, keypoints, list(zip(pair_ids, geometries))
+
+
+def _triangulated(vi, vj, x1: np.ndarray, x2: np.ndarray, max_reprojection_px: float, min_angle_deg: float):
+    """Points triangulated from matched pixels ``x1`` of ``vi`` and ``x2`` of ``vj``, and which to
+    keep: in front of both cameras, reprojected within ``max_reprojection_px``, inside the masks,
+    seen under at least ``min_angle_deg``."""
+    Pi = vi.K.double().cpu().numpy() @ vi.world_to_camera.double().cpu().numpy()[:3]
+    Pj = vj.K.double().cpu().numpy() @ vj.world_to_camera.double().cpu().numpy()[:3]
+    X = _triangulate(Pi, Pj, x1.astype(np.float64), x2.astype(np.float64))
+    keep = np.ones(len(X), dtype=bool)
+    for P, x, view in ((Pi, x1, vi), (Pj, x2, vj)):
+        h = np.c_[X, np.ones(len(X))] @ P.T
+        keep &= h[:, 2] > 1e-9
+        proj = h[:, :2] / np.where(np.abs(h[:, 2:]) > 1e-12, h[:, 2:], 1e-12)
+        keep &= np.linalg.norm(proj - x, axis=1) <= max_reprojection_px
+        if view.mask is not None:
+            col = np.clip(x[:, 0].astype(int), 0, view.width - 1)
+            row = np.clip(x[:, 1].astype(int), 0, view.height - 1)
+            keep &= view.mask[0].cpu().numpy()[row, col]
+    ci, cj = vi.camera_center.double().cpu().numpy(), vj.camera_center.double().cpu().numpy()
+    a, b = X - ci, X - cj
+    cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+    keep &= cos <= np.cos(np.deg2rad(min_angle_deg))
+    return X, keep
