@@ -6,6 +6,8 @@ import importlib.util
 import math
 from pathlib import Path
 
+import pytest
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
@@ -22,3 +24,11 @@ def test_custom_trainer_example_trains_with_the_hooks() -> None:
     result = _load("custom_trainer").main(["--iterations", "40", "--size", "32", "--views", "6"])
     assert math.isfinite(result["loss"])
     assert result["num_gaussians"] == 2000 + result["appended"]
+
+
+@pytest.mark.slow
+def test_service_example_trains_meshes_and_evaluates(tmp_path) -> None:
+    result = _load("service_run").main(["--out", str(tmp_path), "--views", "6", "--size", "32", "--iters", "30"])
+    assert set(result) == {"base", "full"}
+    for figures in result.values():
+        assert 0 < figures["chamfer"] < 1 and 0 < figures["normal_mae_deg"] < 90
