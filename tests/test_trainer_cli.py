@@ -150,8 +150,8 @@ def test_config_file_sets_any_field_and_unknown_keys_name_key_and_file(fake_data
     summary = _summary(run)
     assert summary["polar_config"]["losses"]["alpha_normal"] == 0.3
     assert summary["config"]["density"]["max_gaussians"] == 321 and summary["config_file"] == str(settings)
-    for content, key in (({"polar": {"losses": {"alpha_nrmal": 1}}}, "polar.losses.alpha_nrmal"),
-                         ({"train": {"iterationz": 5}}, "train.iterationz"),
+    for content, key in (({"polar": {"losses": {"alpha_nrmal": 1}}}, "polar.losses: unknown setting 'alpha_nrmal'"),
+                         ({"train": {"iterationz": 5}}, "train: unknown setting 'iterationz'"),
                          ({"correction": {}}, "correction")):
         settings.write_text(json.dumps(content))
         out = tmp_path / f"bad-{key}"

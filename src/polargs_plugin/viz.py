@@ -274,6 +274,12 @@ def save_map_pictures(maps: PolarMaps, out_dir: Path, prefix: str) -> list[Path]
 
     Returns:
         The paths written.
+
+    >>> import tempfile
+    >>> maps = PolarMaps(aolp=torch.zeros(1, 4, 4), dolp=torch.full((1, 4, 4), 0.2), intensity=torch.ones(3, 4, 4))
+    >>> with tempfile.TemporaryDirectory() as folder:  # PC off: no masks, no colour targets
+    ...     [path.name for path in save_map_pictures(maps, Path(folder), "v0")]
+    ['v0_aolp.png', 'v0_dolp.png']
     """
     maps_cpu = {name: value.detach().cpu().float() for name, value in vars(maps).items() if isinstance(value, Tensor)}
     pictures = {
