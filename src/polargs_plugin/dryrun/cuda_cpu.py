@@ -98,12 +98,15 @@ class CpuEvent:
         return (end.time - self.time) * 1000.0
 
 
-def _nothing(*args: Any, **kwargs: Any) -> None:
-    return None
+def _constant(name: str, value: Any) -> Callable[..., Any]:
+    """A stand-in of ``torch.cuda.<name>`` that returns ``value``; one function object per name
+    (torch's compiler refuses one object registered under two names)."""
 
+    def stand_in(*args: Any, **kwargs: Any) -> Any:
+        return value
 
-def _zero(*args: Any, **kwargs: Any) -> int:
-    return 0
+    stand_in.__name__ = stand_in.__qualname__ = name
+    return stand_in
 
 
 def _replace(owner: Any, name: str, value: Any) -> None:
@@ -130,9 +133,9 @@ def install() -> None:
     _replace(torch.nn.Module, "cuda", _module_cuda)
     _replace(torch.nn.Module, "to", _to_cpu(torch.nn.Module.to))
     for name in ("set_device", "synchronize", "empty_cache", "reset_peak_memory_stats", "ipc_collect"):
-        _replace(torch.cuda, name, _nothing)
+        _replace(torch.cuda, name, _constant(name, None))
     for name in ("memory_allocated", "max_memory_allocated", "memory_reserved", "max_memory_reserved"):
-        _replace(torch.cuda, name, _zero)
+        _replace(torch.cuda, name, _constant(name, 0))
     _replace(torch.cuda, "Event", CpuEvent)
 
 

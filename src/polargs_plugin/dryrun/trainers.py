@@ -81,8 +81,9 @@ TRAINERS: dict[str, TrainerSpec] = {
 
 def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> list[str]:
     """``train.py`` arguments of the graphdeco family that shrink its schedule to ``iterations``:
-    densification every ``interval`` from ``interval`` to 80 % of the run, the opacity reset in the
-    middle, the position learning-rate decay over the run, a checkpoint one interval before the
+    densification every ``interval`` from ``interval`` to 80 % of the run, the opacity reset once,
+    right after the last densification (a reset shortly before a prune would prune everything that
+    had no time to recover, as 3000 iterations between them upstream never do), the position learning-rate decay over the run, a checkpoint one interval before the
     end, no test renders, then the trainer's own extra arguments."""
     densify_until = max(2 * interval, int(0.8 * iterations))
     return [
@@ -91,7 +92,7 @@ def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> lis
         "--densify_from_iter", str(interval),
         "--densify_until_iter", str(densify_until),
         "--densification_interval", str(interval),
-        "--opacity_reset_interval", str(max(interval + 1, iterations // 2)),
+        "--opacity_reset_interval", str(densify_until - 1),
         "--test_iterations", str(iterations + 1),
         "--save_iterations", str(iterations),
         "--checkpoint_iterations", str(iterations - interval),
@@ -103,11 +104,19 @@ def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> lis
 def dense_settings(iterations: int, interval: int) -> dict:
     """The PolarGS settings (``POLARGS_CONFIG``) of a dry run: Dense every ``interval`` from the
     second native densification to 70 % of the run (so the native densification and pruning
-    handle the appended Gaussians several times), L_dn from the middle."""
+    handle the appended Gaussians several times), L_dn from the middle.
+
+    A dry run checks the plumbing, not where Dense seeds: after a few dozen iterations on a small
+    scene the paper's filters may keep no pixel at all, so they are relaxed (one consistent source
+    within 2 px and 5 % depth, seeds wherever PatchMatch's depth differs from the render's)."""
     return {
         "polar": {
-            "densify": {"start_iter": 2 * interval, "end_iter": max(2 * interval, int(0.7 * iterations)),
-                        "interval": interval},
+            "densify": {
+                "start_iter": 2 * interval, "end_iter": max(2 * interval, int(0.7 * iterations)), "interval": interval,
+                "seed_depth_footprints": 0.0, "seed_max_plane_deviation": None, "seed_behind_surface": True,
+                "filters": {"min_consistent_views": 1, "max_reprojection_px": 2.0, "max_relative_depth": 0.05,
+                            "max_polar_residual": 1.0, "max_photometric_cost": 2.0},
+            },
             "losses": {"depth_normal_from_iter": iterations // 2},
         }
     }
