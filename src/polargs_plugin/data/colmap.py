@@ -202,9 +202,10 @@ def find_colmap_model(folder: str | os.PathLike) -> Path | None:
 def write_colmap_scene(folder: str | os.PathLike, views: "Sequence[View]", points: np.ndarray,
                        colors: np.ndarray | None = None) -> Path:
     """A scene as an upstream trainer's COLMAP input: ``images/<name>.png`` (the training colour
-    s0 / 2 of each view, 8 bits) and ``sparse/0`` (PINHOLE cameras, ``points`` as the sparse
-    points the trainer initialises from). Image names are the view names, so a patched trainer
-    finds each camera's polarimetric view by name."""
+    s0 / 2 of each view, 8 bits) and the sparse model (PINHOLE cameras, ``points`` as the sparse
+    points the trainer initialises from) twice: in ``sparse/0``, where graphdeco, GOF and 2DGS
+    read it, and in ``sparse``, where PGSR does. Image names are the view names, so a patched
+    trainer finds each camera's polarimetric view by name."""
     from polargs_plugin.data.imageio_utils import write_png
 
     folder = Path(folder)
@@ -215,5 +216,6 @@ def write_colmap_scene(folder: str | os.PathLike, views: "Sequence[View]", point
         cameras[f"{view.name}.png"] = ColmapCamera(
             view.K.double().numpy(), view.world_to_camera.double().numpy(), view.width, view.height
         )
-    write_colmap_text(folder / "sparse" / "0", cameras, points, colors)
+    for model_dir in (folder / "sparse" / "0", folder / "sparse"):
+        write_colmap_text(model_dir, cameras, points, colors)
     return folder

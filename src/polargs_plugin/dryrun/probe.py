@@ -20,6 +20,7 @@ from a replaced parameter.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import math
 import time
@@ -115,7 +116,9 @@ class Probe:
     def _wrap(self, owner: Any, name: str, make: Callable[[Callable[..., Any]], Callable[..., Any]]) -> None:
         original = getattr(owner, name)
         self._restores.append((owner, name, original))
-        setattr(owner, name, make(original))
+        # wraps: the wrapper keeps the original's name and signature (adapters inspect it, e.g.
+        # whether densification_postfix takes graphdeco 2024's new_tmp_radii)
+        setattr(owner, name, functools.wraps(original)(make(original)))
 
     def install(self, model_class: Any) -> None:
         """Wrap ``Tensor.backward``, the checkout's ``GaussianModel`` and ``InriaAdapter``."""
