@@ -300,3 +300,38 @@ def test_dry_run_of_the_placeholder_trainer(fixture: str, trainer: str, tmp_path
     assert {"finished (patched)", "Dense appended and survived (patched)", "checkpoint (patched)"} <= names
     after = sorted(p.name for p in checkout.rglob("*") if "__pycache__" not in p.parts)
     assert after == before  # nothing written into the checkout
+
+
+_BLOCK_OPTIONAL = """
+import importlib.abc, sys
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in ('open3d', 'kornia', 'OpenEXR', 'pycolmap'):
+            raise ModuleNotFoundError(f'No module named {name!r} (blocked)', name=name)
+sys.meta_path.insert(0, Block())
+"""
+
+
+@pytest.mark.parametrize("module", [
+    "polargs_plugin.hooks", "polargs_plugin.backends.reference.trainer", "polargs_plugin.service.train",
+    "polargs_plugin.dryrun.launch", "polargs_adapters.gof",
+])
+def test_training_parts_import_without_the_optional_packages(module: str) -> None:
+    """What a GPU machine without open3d (or kornia, OpenEXR, pycolmap) runs must import there."""
+    import subprocess
+
+    done = subprocess.run([sys.executable, "-c", _BLOCK_OPTIONAL + f"import {module}"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_gpu_check_reports_clearly_without_a_gpu(tmp_path: Path) -> None:
+    import os
+    import subprocess
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    env = dict(os.environ, PYTHON=sys.executable)
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_check.sh"), "--out", str(tmp_path)], capture_output=True,
+                          text=True, env=env)
+    assert done.returncode == 0
+    assert "not done: every step: no CUDA device" in done.stdout
