@@ -28,6 +28,9 @@ LAYERS: list[set[str]] = [
     {"ablation"},
     # plain functions behind the CLI, the ablation, the examples and the adapters
     {"service"},
+    # dry runs of upstream trainers: stand-ins of their CUDA extensions on the reference backend,
+    # run inside the trainer's process (service.dryrun starts them; they use the kit and backends)
+    {"dryrun"},
     # the adapter kit and the bundled reference backend (one way only: see WITHIN_LAYER_FORBIDDEN)
     {"kit", "backends"},
     # PolarHooks, what a trainer calls

@@ -25,6 +25,7 @@ _COMMANDS: dict[str, str] = {
     "mesh": "extract a mesh from a trained run by TSDF fusion",
     "eval": "Chamfer distance, F-score and normal MAE of a run or mesh",
     "ablate": "run the ablation grid (scenes x variants x seeds) and write a report",
+    "dryrun": "run a patched upstream train.py on the CPU for a few hundred iterations and check it",
 }
 
 _DESCRIPTION = (

@@ -25,6 +25,7 @@ so --out holds a whole scene or nothing.
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``generate`` subcommand."""
     from polargs_plugin.data.synthetic import MASK_KINDS, SCENE_NAMES
+    from polargs_plugin.service.scenes import EXPORTS
 
     parser = subparsers.add_parser(
         "generate",
@@ -49,6 +50,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="what the masks mark: object = the object's own pixels, a floor it stands on is "
                         "background (default); surface = every surface seen, the floor included")
     parser.add_argument("--pictures", action="store_true", help="also save AoLP/DoLP pictures per view under OUT/pictures")
+    parser.add_argument("--export", choices=EXPORTS,
+                        help="also write the scene as an upstream trainer's input: colmap = OUT/colmap (images/, "
+                             "sparse/0) for the graphdeco-family trainers, with OUT as their POLARGS_DATA")
     parser.set_defaults(func=run)
 
 
@@ -63,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     request = SceneRequest(args.scene, views=args.views, width=width, height=height, seed=args.seed,
                            noise_std=args.noise, bits=args.bits, refractive_index=args.ior, mask=args.mask,
                            pictures=args.pictures)
-    made = generate_scene_folder(request, args.out, overwrite=args.overwrite, progress=True)
+    made = generate_scene_folder(request, args.out, overwrite=args.overwrite, progress=True, export=args.export)
     scene, stats = made.scene, scene_statistics(made.scene)
     print(f"scene       {scene.name}: {scene.meta['description']}")
     print(f"views       {len(scene.views)} x {width}x{height}, {args.bits}-bit, noise {args.noise}, seed {args.seed}")
@@ -72,4 +76,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"DoLP        median {stats['dolp_median']:.3f} on the object (AoLP model: {scene.meta['azimuth_model']})")
     print(f"time        {made.render_seconds:.1f} s rendering, {made.write_seconds:.1f} s writing")
     print(f"written     {args.out}" + (f" (+{made.pictures} pictures)" if made.pictures else ""))
+    if args.export:
+        print(f"trainer     {args.out / args.export} (train.py -s), POLARGS_DATA={args.out}")
     return 0

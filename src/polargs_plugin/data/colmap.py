@@ -12,13 +12,17 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from polargs_plugin.data import cameras as cam
 from polargs_plugin.io import PolarInputError, atomic_write
 
-__all__ = ["ColmapCamera", "read_colmap_model", "write_colmap_text", "find_colmap_model"]
+if TYPE_CHECKING:
+    from polargs_plugin.types import View
+
+__all__ = ["ColmapCamera", "read_colmap_model", "write_colmap_text", "find_colmap_model", "write_colmap_scene"]
 
 # COLMAP camera models: id -> (name, number of params).
 # The pinhole params are f, cx, cy (1 focal) or fx, fy, cx, cy (2 focals); the rest is distortion.
@@ -150,8 +154,20 @@ def _numbers(values: np.ndarray) -> list[str]:
     return [repr(float(v)) for v in values]  # repr: shortest text that parses back exactly
 
 
-def write_colmap_text(model_dir: str | os.PathLike, cameras: dict[str, ColmapCamera]) -> Path:
-    """Write a COLMAP text model (PINHOLE cameras, one per image, no 3D points), atomically per file."""
+def write_colmap_text(
+    model_dir: str | os.PathLike,
+    cameras: dict[str, ColmapCamera],
+    points: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+) -> Path:
+    """Write a COLMAP text model (PINHOLE cameras, one per image), atomically per file.
+
+    Args:
+        model_dir: the model folder (``sparse/0``).
+        cameras: image name -> camera.
+        points: optional (P, 3) 3D points (world frame), written without tracks; none by default.
+        colors: (P, 3) uint8 colours of ``points`` (default mid-grey).
+    """
     model_dir = Path(model_dir)
     camera_lines, image_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], ["# Image list"]
     for index, (name, camera) in enumerate(cameras.items(), start=1):
@@ -163,7 +179,12 @@ def write_colmap_text(model_dir: str | os.PathLike, cameras: dict[str, ColmapCam
         tvec = camera.world_to_camera[:3, 3]
         image_lines.append(" ".join([str(index), *_numbers(qvec), *_numbers(tvec), str(index), name]))
         image_lines.append("")  # no 2D points
-    for filename, lines in (("cameras.txt", camera_lines), ("images.txt", image_lines), ("points3D.txt", ["# 3D point list"])):
+    point_lines = ["# 3D point list: POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]"]
+    if points is not None:
+        rgb = np.full((len(points), 3), 128, dtype=np.uint8) if colors is None else np.asarray(colors, dtype=np.uint8)
+        for index, (xyz, color) in enumerate(zip(np.asarray(points, dtype=np.float64), rgb), start=1):
+            point_lines.append(" ".join([str(index), *_numbers(xyz), *(str(int(c)) for c in color), "0.0"]))
+    for filename, lines in (("cameras.txt", camera_lines), ("images.txt", image_lines), ("points3D.txt", point_lines)):
         with atomic_write(model_dir / filename) as f:
             f.write("\n".join(lines) + "\n")
     return model_dir
@@ -176,3 +197,25 @@ def find_colmap_model(folder: str | os.PathLike) -> Path | None:
         if any((candidate / f"cameras{ext}").is_file() and (candidate / f"images{ext}").is_file() for ext in (".txt", ".bin")):
             return candidate
     return None
+
+
+def write_colmap_scene(folder: str | os.PathLike, views: "Sequence[View]", points: np.ndarray,
+                       colors: np.ndarray | None = None) -> Path:
+    """A scene as an upstream trainer's COLMAP input: ``images/<name>.png`` (the training colour
+    s0 / 2 of each view, 8 bits) and the sparse model (PINHOLE cameras, ``points`` as the sparse
+    points the trainer initialises from) twice: in ``sparse/0``, where graphdeco, GOF and 2DGS
+    read it, and in ``sparse``, where PGSR does. Image names are the view names, so a patched
+    trainer finds each camera's polarimetric view by name."""
+    from polargs_plugin.data.imageio_utils import write_png
+
+    folder = Path(folder)
+    cameras = {}
+    for view in views:
+        image = view.image.clamp(0.0, 1.0).permute(1, 2, 0).numpy()
+        write_png(folder / "images" / f"{view.name}.png", image)
+        cameras[f"{view.name}.png"] = ColmapCamera(
+            view.K.double().numpy(), view.world_to_camera.double().numpy(), view.width, view.height
+        )
+    for model_dir in (folder / "sparse" / "0", folder / "sparse"):
+        write_colmap_text(model_dir, cameras, points, colors)
+    return folder

@@ -15,7 +15,13 @@ from polargs_plugin.io import PolarInputError, current_umask
 if TYPE_CHECKING:
     from polargs_plugin.data.synthetic import SyntheticScene
 
-__all__ = ["SceneRequest", "GeneratedScene", "generate_scene_folder", "scene_statistics"]
+__all__ = ["SceneRequest", "GeneratedScene", "generate_scene_folder", "scene_statistics", "EXPORTS", "EXPORT_POINTS"]
+
+#: Trainer inputs ``generate_scene_folder`` can write beside the scene: ``colmap`` is the input of
+#: the graphdeco-family trainers (``OUT/colmap``: images and a sparse model).
+EXPORTS: tuple[str, ...] = ("colmap",)
+#: Sparse points of the COLMAP export, drawn from the ground-truth mesh's vertices.
+EXPORT_POINTS = 1000
 
 #: Files that mark a folder as a scene folder that ``overwrite`` may replace.
 SCENE_MARKERS = ("scene.json", "cameras.json")
@@ -117,8 +123,26 @@ def _move_in(staging: Path, out: Path, overwrite: bool) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = False, progress: bool = False) -> GeneratedScene:
+def _export_colmap(scene: "SyntheticScene", folder: Path, seed: int) -> None:
+    """``folder`` = the scene as COLMAP input, with :data:`EXPORT_POINTS` mesh vertices as points."""
+    import numpy as np
+
+    from polargs_plugin.data.colmap import write_colmap_scene
+
+    vertices = np.asarray(scene.mesh_vertices, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    chosen = rng.choice(len(vertices), size=min(EXPORT_POINTS, len(vertices)), replace=False)
+    write_colmap_scene(folder, scene.views, vertices[np.sort(chosen)])
+
+
+def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = False, progress: bool = False,
+                          export: str | None = None) -> GeneratedScene:
     """Render ``request`` and write it to the scene folder ``out`` (docs/dataset-format.md).
+
+    ``export="colmap"`` also writes ``out/colmap``, the scene as a graphdeco-family trainer's
+    input (``images/``, ``sparse/0`` with points drawn from the ground-truth mesh), whose image
+    names are the view names, so that ``out`` is the ``POLARGS_DATA`` of a patched trainer
+    reading ``out/colmap``.
 
     The scene is written beside ``out`` and moved into place when complete, so ``out`` holds a
     whole scene or nothing. An existing non-empty ``out`` is refused unless ``overwrite`` and it is
@@ -141,6 +165,10 @@ def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = Fa
         scene = request.render(progress)
         rendered = time.perf_counter()
         write_scene(scene, staging)
+        if export is not None:
+            if export not in EXPORTS:
+                raise PolarInputError("--export", f"unknown export {export!r} (choose one of {', '.join(EXPORTS)})")
+            _export_colmap(scene, staging / export, request.seed)
         pictures = _write_pictures(scene, staging) if request.pictures else 0
         _move_in(staging, out, overwrite)
     finally:

@@ -1,6 +1,7 @@
 # Test fixture for the patch scripts: a placeholder trainer with the statement shape of the
 # graphdeco-inria/gaussian-splatting 2023 training loop (commit 472689c). Written for these tests;
-# the bodies do nothing useful and nothing here is upstream code.
+# nothing here is upstream code. With the modules of inria_support/ beside it, it trains in a dry
+# run (tests/test_dryrun.py).
 
 import os
 import torch
@@ -9,6 +10,7 @@ from utils.loss_utils import l1_loss, ssim
 from gaussian_renderer import render, network_gui
 import sys
 from scene import Scene, GaussianModel
+from arguments import ModelParams, PipelineParams, OptimizationParams
 from argparse import ArgumentParser
 try:
     from torch.utils.tensorboard import SummaryWriter
@@ -22,7 +24,7 @@ def training(dataset, opt, pipe, testing_iterations, saving_iterations, checkpoi
     gaussians = GaussianModel(dataset.sh_degree)
     scene = Scene(dataset, gaussians)
     gaussians.training_setup(opt)
-    background = torch.zeros(3)
+    background = torch.tensor([0, 0, 0], dtype=torch.float32, device="cuda")
     viewpoint_stack = None
     first_iter += 1
     for iteration in range(first_iter, opt.iterations + 1):
@@ -39,12 +41,12 @@ def training(dataset, opt, pipe, testing_iterations, saving_iterations, checkpoi
             viewpoint_stack = scene.getTrainCameras().copy()
         viewpoint_cam = viewpoint_stack.pop(randint(0, len(viewpoint_stack) - 1))
 
-        bg = torch.rand(3) if opt.random_background else background
+        bg = torch.rand((3), device="cuda") if opt.random_background else background
 
         render_pkg = render(viewpoint_cam, gaussians, pipe, bg)
         image, viewspace_point_tensor, visibility_filter, radii = render_pkg["render"], render_pkg["viewspace_points"], render_pkg["visibility_filter"], render_pkg["radii"]
 
-        gt_image = viewpoint_cam.original_image
+        gt_image = viewpoint_cam.original_image.cuda()
         Ll1 = l1_loss(image, gt_image)
         loss = (1.0 - opt.lambda_dssim) * Ll1 + opt.lambda_dssim * (1.0 - ssim(image, gt_image))
         loss.backward()
@@ -73,5 +75,14 @@ def training_report(iteration, scene, renderFunc, renderArgs):
 
 if __name__ == "__main__":
     parser = ArgumentParser()
+    lp, op, pp = ModelParams(parser), OptimizationParams(parser), PipelineParams(parser)
+    parser.add_argument("--port", type=int, default=6009)
+    parser.add_argument("--disable_viewer", action="store_true")
+    parser.add_argument("--test_iterations", nargs="+", type=int, default=[])
+    parser.add_argument("--save_iterations", nargs="+", type=int, default=[])
+    parser.add_argument("--checkpoint_iterations", nargs="+", type=int, default=[])
+    parser.add_argument("--start_checkpoint", type=str, default=None)
     args = parser.parse_args(sys.argv[1:])
-    training(args, args, args, [], [], [], None, -1)
+    torch.manual_seed(0)
+    network_gui.init("127.0.0.1", args.port)
+    training(lp.extract(args), op.extract(args), pp.extract(args), args.test_iterations, args.save_iterations, args.checkpoint_iterations, args.start_checkpoint, -1)

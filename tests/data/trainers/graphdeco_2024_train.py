@@ -1,6 +1,7 @@
 # Test fixture for the patch scripts: a placeholder trainer with the statement shape of the
 # graphdeco-inria/gaussian-splatting 2024 training loop (commit 54c035f: exposure optimizer, sparse
-# Adam, depth regulariser). Written for these tests; nothing here is upstream code.
+# Adam, depth regulariser). Written for these tests; nothing here is upstream code. With the
+# modules of inria_support/ beside it, it trains in a dry run (tests/test_dryrun.py).
 
 import os
 import torch
@@ -9,6 +10,7 @@ from utils.loss_utils import l1_loss, ssim
 from gaussian_renderer import render, network_gui
 import sys
 from scene import Scene, GaussianModel
+from arguments import ModelParams, PipelineParams, OptimizationParams
 from utils.general_utils import get_expon_lr_func
 from argparse import ArgumentParser
 try:
@@ -35,7 +37,7 @@ def training(dataset, opt, pipe, testing_iterations, saving_iterations, checkpoi
     gaussians = GaussianModel(dataset.sh_degree, opt.optimizer_type)
     scene = Scene(dataset, gaussians)
     gaussians.training_setup(opt)
-    background = torch.zeros(3)
+    background = torch.tensor([0, 0, 0], dtype=torch.float32, device="cuda")
     use_sparse_adam = opt.optimizer_type == "sparse_adam" and SPARSE_ADAM_AVAILABLE
     depth_l1_weight = get_expon_lr_func(opt.depth_l1_weight_init, opt.depth_l1_weight_final, max_steps=opt.iterations)
     viewpoint_stack = scene.getTrainCameras().copy()
@@ -54,12 +56,12 @@ def training(dataset, opt, pipe, testing_iterations, saving_iterations, checkpoi
             viewpoint_stack = scene.getTrainCameras().copy()
         viewpoint_cam = viewpoint_stack.pop(randint(0, len(viewpoint_stack) - 1))
 
-        bg = torch.rand(3) if opt.random_background else background
+        bg = torch.rand((3), device="cuda") if opt.random_background else background
 
         render_pkg = render(viewpoint_cam, gaussians, pipe, bg, use_trained_exp=dataset.train_test_exp, separate_sh=SPARSE_ADAM_AVAILABLE)
         image, viewspace_point_tensor, visibility_filter, radii = render_pkg["render"], render_pkg["viewspace_points"], render_pkg["visibility_filter"], render_pkg["radii"]
 
-        gt_image = viewpoint_cam.original_image
+        gt_image = viewpoint_cam.original_image.cuda()
         Ll1 = l1_loss(image, gt_image)
         ssim_value = fused_ssim(image, gt_image) if FUSED_SSIM_AVAILABLE else ssim(image, gt_image)
         loss = (1.0 - opt.lambda_dssim) * Ll1 + opt.lambda_dssim * (1.0 - ssim_value)
@@ -96,5 +98,14 @@ def training(dataset, opt, pipe, testing_iterations, saving_iterations, checkpoi
 
 if __name__ == "__main__":
     parser = ArgumentParser()
+    lp, op, pp = ModelParams(parser), OptimizationParams(parser), PipelineParams(parser)
+    parser.add_argument("--port", type=int, default=6009)
+    parser.add_argument("--disable_viewer", action="store_true")
+    parser.add_argument("--test_iterations", nargs="+", type=int, default=[])
+    parser.add_argument("--save_iterations", nargs="+", type=int, default=[])
+    parser.add_argument("--checkpoint_iterations", nargs="+", type=int, default=[])
+    parser.add_argument("--start_checkpoint", type=str, default=None)
     args = parser.parse_args(sys.argv[1:])
-    training(args, args, args, [], [], [], None, -1)
+    torch.manual_seed(0)
+    network_gui.init("127.0.0.1", args.port)
+    training(lp.extract(args), op.extract(args), pp.extract(args), args.test_iterations, args.save_iterations, args.checkpoint_iterations, args.start_checkpoint, -1)

@@ -37,6 +37,8 @@ __all__ = [
     "Composite",
     "gaussian_alpha",
     "pixel_depth",
+    "contributing_pairs",
+    "exclusive_transmittance",
     "composite_torch",
 ]
 
@@ -91,8 +93,9 @@ def pixel_depth(ray_coeffs: Tensor, ray_offsets: Tensor, depth_bounds: Tensor, p
 
 
 @torch.no_grad()
-def _contributing_pairs(
-    proj: Projection, opacities: Tensor, bins: TileBins, width: int, height: int, chunk_elems: int, slab: int
+def contributing_pairs(
+    proj: Projection, opacities: Tensor, bins: TileBins, width: int, height: int,
+    chunk_elems: int = 1 << 21, slab: int = 32,
 ) -> tuple[Tensor, Tensor]:
     """(pixel index, Gaussian index) of every contributing pair, grouped by pixel, front to back.
 
@@ -146,6 +149,20 @@ def _contributing_pairs(
     return pix[order], gauss[order]
 
 
+def exclusive_transmittance(alpha: Tensor, pix: Tensor) -> Tensor:
+    """Transmittance in front of each pair (float64): the product of (1 - alpha) over the pairs
+    before it in its pixel's group (pairs grouped by pixel, front to back, as
+    :func:`contributing_pairs` returns them)."""
+    log_1m = torch.log1p(-alpha.double())
+    # Segmented exclusive cumulative sum: global cumsum minus its value at each pixel's first pair.
+    excl = torch.cumsum(log_1m, 0) - log_1m
+    first = torch.ones_like(pix, dtype=torch.bool)
+    first[1:] = pix[1:] != pix[:-1]
+    segment = torch.cumsum(first.long(), 0) - 1
+    excl = excl - excl[first][segment]
+    return torch.exp(excl)
+
+
 def composite_torch(
     proj: Projection,
     opacities: Tensor,
@@ -172,21 +189,14 @@ def composite_torch(
     Returns:
         :class:`Composite` (gradients flow to every float field of ``proj``, opacities, colors).
     """
-    pix, g = _contributing_pairs(proj, opacities, bins, width, height, chunk_elems, slab)
+    pix, g = contributing_pairs(proj, opacities, bins, width, height, chunk_elems, slab)
     dtype = proj.means2d.dtype
     num_pix = width * height
     px = (pix % width).to(dtype) + 0.5
     py = torch.div(pix, width, rounding_mode="floor").to(dtype) + 0.5
 
     alpha = gaussian_alpha(proj.means2d[g], proj.conics[g], opacities[g], px, py)
-    log_1m = torch.log1p(-alpha.double())
-    # Segmented exclusive cumulative sum: global cumsum minus its value at each pixel's first pair.
-    excl = torch.cumsum(log_1m, 0) - log_1m
-    first = torch.ones_like(pix, dtype=torch.bool)
-    first[1:] = pix[1:] != pix[:-1]
-    segment = torch.cumsum(first.long(), 0) - 1
-    excl = excl - excl[first][segment]
-    trans = torch.exp(excl)
+    trans = exclusive_transmittance(alpha, pix)
     weight = (alpha * trans).to(dtype)
     depth = pixel_depth(proj.ray_coeffs[g], proj.ray_offsets[g], proj.depth_bounds[g], px, py)
 

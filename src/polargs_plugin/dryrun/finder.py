@@ -1,0 +1,60 @@
+"""The import hook that serves the stand-ins under the upstream module names.
+
+:class:`StandinFinder` sits first on ``sys.meta_path`` of the dry-run process: ``import
+diff_gaussian_rasterization`` (or ``from simple_knn._C import distCUDA2``) gets the stand-in module
+named in its table, whatever is installed, and nothing is written anywhere. A name whose
+sub-modules are also in the table is given a ``__path__`` so that ``import a.b`` works.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.abc
+import importlib.machinery
+import sys
+from types import ModuleType
+from typing import Mapping, Sequence
+
+__all__ = ["StandinFinder", "install_standins"]
+
+
+class _AliasLoader(importlib.abc.Loader):
+    """Loads an upstream name as an existing module of this package."""
+
+    def __init__(self, target: str, is_package: bool) -> None:
+        self.target = target
+        self.is_package = is_package
+
+    def create_module(self, spec: importlib.machinery.ModuleSpec) -> ModuleType:
+        module = importlib.import_module(self.target)
+        if self.is_package and not hasattr(module, "__path__"):
+            module.__path__ = []  # type: ignore[attr-defined]  (lets `import name.sub` go on)
+        return module
+
+    def exec_module(self, module: ModuleType) -> None:
+        """The target module is already executed."""
+
+
+class StandinFinder(importlib.abc.MetaPathFinder):
+    """Finds upstream module names in ``table`` (upstream name -> module of this package)."""
+
+    def __init__(self, table: Mapping[str, str]) -> None:
+        self.table = dict(table)
+
+    def find_spec(self, fullname: str, path: Sequence[str] | None = None, target: ModuleType | None = None
+                  ) -> importlib.machinery.ModuleSpec | None:
+        if fullname not in self.table:
+            return None
+        is_package = any(name.startswith(fullname + ".") for name in self.table)
+        loader = _AliasLoader(self.table[fullname], is_package)
+        return importlib.machinery.ModuleSpec(fullname, loader, is_package=is_package)
+
+
+def install_standins(table: Mapping[str, str]) -> StandinFinder:
+    """Put a :class:`StandinFinder` for ``table`` first on ``sys.meta_path`` (dropping any upstream
+    module of those names already imported); returns it (remove it from ``sys.meta_path`` to undo)."""
+    for name in table:
+        sys.modules.pop(name, None)
+    finder = StandinFinder(table)
+    sys.meta_path.insert(0, finder)
+    return finder

@@ -1,0 +1,122 @@
+"""The trainers a dry run knows: which stand-ins each imports and how its schedule is shrunk.
+
+Each :class:`TrainerSpec` names the upstream module names the trainer imports (served by the
+stand-ins), the command-line arguments of its ``train.py`` that shrink its schedule so that, within
+a few hundred iterations, its own densification and pruning run several times, and the Dense window
+of the PolarGS settings (``POLARGS_CONFIG``) that overlaps it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+__all__ = ["TrainerSpec", "TRAINERS", "schedule_arguments", "dense_settings", "STANDINS"]
+
+STANDINS = "polargs_plugin.dryrun.standins"
+
+_KNN = {"simple_knn": f"{STANDINS}.simple_knn", "simple_knn._C": f"{STANDINS}.simple_knn"}
+
+
+@dataclass(frozen=True)
+class TrainerSpec:
+    """One upstream trainer as a dry run drives it.
+
+    Attributes:
+        name: the ``--trainer`` name.
+        description: the repository and commit it was written against.
+        standins: upstream module name -> stand-in module.
+        adapter: the ``polargs_adapters`` sub-package its patch script inserts.
+        extra_arguments: ``train.py`` arguments beyond the shared schedule (trainer-only switches).
+        from_middle: ``train.py`` options naming the iteration a trainer's own geometry terms start
+            at; a dry run sets them to the middle of the run so that those terms run too.
+    """
+
+    name: str
+    description: str
+    standins: dict[str, str]
+    adapter: str
+    extra_arguments: tuple[str, ...] = field(default=())
+    from_middle: tuple[str, ...] = field(default=())
+
+
+TRAINERS: dict[str, TrainerSpec] = {
+    spec.name: spec
+    for spec in (
+        TrainerSpec(
+            "graphdeco",
+            "graphdeco-inria/gaussian-splatting, 2024 (54c035f: inverse depth, antialiasing)",
+            {"diff_gaussian_rasterization": f"{STANDINS}.graphdeco_2024", **_KNN},
+            "graphdeco",
+            ("--disable_viewer",),
+        ),
+        TrainerSpec(
+            "graphdeco-2023",
+            "graphdeco-inria/gaussian-splatting, 2023 (472689c: colour and radii only)",
+            {"diff_gaussian_rasterization": f"{STANDINS}.graphdeco_2023", **_KNN},
+            "graphdeco",
+        ),
+        TrainerSpec(
+            "gof",
+            "autonomousvision/gaussian-opacity-fields (5245b20)",
+            {"diff_gaussian_rasterization": f"{STANDINS}.gof", **_KNN},
+            "gof",
+            from_middle=("--distortion_from_iter", "--depth_normal_from_iter"),
+        ),
+        TrainerSpec(
+            "pgsr",
+            "zju3dv/PGSR (de24f1a)",
+            {"diff_plane_rasterization": f"{STANDINS}.plane", **_KNN},
+            "pgsr",
+            from_middle=("--single_view_weight_from_iter", "--multi_view_weight_from_iter"),
+        ),
+        TrainerSpec(
+            "2dgs",
+            "hbb1/2d-gaussian-splatting (1920a23)",
+            {"diff_surfel_rasterization": f"{STANDINS}.surfel", **_KNN},
+            "twodgs",
+        ),
+    )
+}
+
+
+def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> list[str]:
+    """``train.py`` arguments of the graphdeco family that shrink its schedule to ``iterations``:
+    densification every ``interval`` from ``interval`` to 80 % of the run, the opacity reset once,
+    right after the last densification (a reset shortly before a prune would prune everything that
+    had no time to recover, as 3000 iterations between them upstream never do), the position learning-rate decay over the run, a checkpoint one interval before the
+    end, no test renders, then the trainer's own extra arguments."""
+    densify_until = max(2 * interval, int(0.8 * iterations))
+    return [
+        "--iterations", str(iterations),
+        "--position_lr_max_steps", str(iterations),
+        "--densify_from_iter", str(interval),
+        "--densify_until_iter", str(densify_until),
+        "--densification_interval", str(interval),
+        "--opacity_reset_interval", str(densify_until - 1),
+        "--test_iterations", str(iterations + 1),
+        "--save_iterations", str(iterations),
+        "--checkpoint_iterations", str(iterations - interval),
+        *spec.extra_arguments,
+        *[item for flag in spec.from_middle for item in (flag, str(iterations // 2))],
+    ]
+
+
+def dense_settings(iterations: int, interval: int) -> dict:
+    """The PolarGS settings (``POLARGS_CONFIG``) of a dry run: Dense every ``interval`` from the
+    second native densification to 70 % of the run (so the native densification and pruning
+    handle the appended Gaussians several times), L_dn from the middle.
+
+    A dry run checks the plumbing, not where Dense seeds: after a few dozen iterations on a small
+    scene the paper's filters may keep no pixel at all, so they are relaxed (one consistent source
+    within 2 px and 5 % depth, seeds wherever PatchMatch's depth differs from the render's)."""
+    return {
+        "polar": {
+            "densify": {
+                "start_iter": 2 * interval, "end_iter": max(2 * interval, int(0.7 * iterations)), "interval": interval,
+                "seed_depth_footprints": 0.0, "seed_max_plane_deviation": None, "seed_behind_surface": True,
+                "filters": {"min_consistent_views": 1, "max_reprojection_px": 2.0, "max_relative_depth": 0.05,
+                            "max_polar_residual": 1.0, "max_photometric_cost": 2.0},
+            },
+            "losses": {"depth_normal_from_iter": iterations // 2},
+        }
+    }

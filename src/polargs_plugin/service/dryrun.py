@@ -1,0 +1,263 @@
+"""A dry run of a patched upstream trainer (``polargs dryrun``; docs/adapters/dryrun.md).
+
+:func:`dry_run` makes a small scene the trainer reads (``generate --export colmap``, cached in
+the work folder), writes the PolarGS settings that shrink Dense's window to the run, then starts
+:mod:`polargs_plugin.dryrun.launch` twice with the trainer's own ``train.py`` and a shrunk
+schedule: once patched (the checkout's ``train.py``) and once unpatched (a copy without the marked
+lines, in the work folder; the checkout is never written). It returns one :class:`Check` per
+line the command prints.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import socket
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from statistics import mean
+from typing import Callable, Sequence
+
+from polargs_plugin.dryrun.trainers import TRAINERS, dense_settings, schedule_arguments
+from polargs_plugin.io import PolarInputError, atomic_write
+from polargs_plugin.kit.patching import is_marked, strip_marked
+from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder
+
+__all__ = ["DryRunRequest", "Check", "DryRunResult", "dry_run", "verdict", "describe", "WARMUP_STEPS"]
+
+#: Steps left out of the step-time ratio (numba compilation, first allocations).
+WARMUP_STEPS = 10
+
+
+@dataclass(frozen=True)
+class DryRunRequest:
+    """One dry run.
+
+    Attributes:
+        checkout: the trainer's checkout, its ``train.py`` patched by ``adapters/<name>/patch.py``.
+        trainer: a name of :data:`polargs_plugin.dryrun.trainers.TRAINERS`.
+        workdir: where the scene, the settings, the outputs and the logs go (kept afterwards).
+        iterations: training iterations of each run (>= 4 * interval).
+        interval: iterations between the trainer's densifications and between Dense calls.
+        train_arguments: more ``train.py`` arguments, after the dry run's own (they win).
+        scene: the bundled scene to train on.
+        views, width, height: its size.
+        compare: also run the unpatched copy (for the step-time ratio).
+        timeout: seconds each run may take.
+    """
+
+    checkout: Path
+    trainer: str
+    workdir: Path
+    iterations: int = 300
+    interval: int = 30
+    train_arguments: tuple[str, ...] = ()
+    scene: str = "bumpy_mixed"
+    views: int = 16
+    width: int = 64
+    height: int = 48
+    compare: bool = True
+    timeout: float = 1800.0
+
+
+@dataclass
+class Check:
+    """One line of the verdict.
+
+    Attributes:
+        name: what was checked.
+        ok: True passed, False failed, None information only.
+        detail: the figures behind it.
+    """
+
+    name: str
+    ok: bool | None
+    detail: str
+
+
+@dataclass
+class DryRunResult:
+    """What :func:`dry_run` found.
+
+    Attributes:
+        checks: the verdict, one :class:`Check` per line.
+        reports: the probe's report of each run ("patched", "unpatched").
+        logs: each run's output file.
+    """
+
+    checks: list[Check]
+    reports: dict[str, dict] = field(default_factory=dict)
+    logs: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """No check failed."""
+        return all(check.ok is not False for check in self.checks)
+
+
+def _train_script(checkout: Path, trainer: str) -> tuple[Path, str]:
+    if trainer not in TRAINERS:
+        raise PolarInputError("--trainer", f"unknown trainer {trainer!r} (choose one of {', '.join(sorted(TRAINERS))})")
+    script = checkout / "train.py"
+    if not script.is_file():
+        raise PolarInputError(checkout, "has no train.py (give the trainer's checkout folder)")
+    text = script.read_text(encoding="utf-8", errors="surrogateescape")
+    if not any(is_marked(line) for line in text.splitlines()):
+        adapter = TRAINERS[trainer].adapter
+        raise PolarInputError(script, f"is not patched: run `python adapters/{adapter}/patch.py {checkout}` first")
+    return script, text
+
+
+def _scene(request: DryRunRequest) -> Path:
+    """The work folder's scene (made once; a later dry run in the same folder reuses it)."""
+    folder = request.workdir / f"scene-{request.scene}-{request.views}x{request.width}x{request.height}"
+    if not (folder / "colmap" / "sparse" / "0" / "cameras.txt").is_file():
+        scene = SceneRequest(request.scene, views=request.views, width=request.width, height=request.height)
+        generate_scene_folder(scene, folder, overwrite=folder.exists(), export="colmap")
+    return folder
+
+
+def _free_port() -> int:
+    """A free local TCP port for the trainer's viewer socket (graphdeco-family ``--port``)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _package_paths() -> list[str]:
+    """Folders that make ``polargs_plugin`` and ``polargs_adapters`` importable in the child."""
+    paths = []
+    for name in ("polargs_plugin", "polargs_adapters"):
+        spec = importlib.util.find_spec(name)
+        if spec is None or not spec.submodule_search_locations:
+            raise PolarInputError(name, "is not importable: install polargs_plugin (it brings polargs_adapters)")
+        paths.append(str(Path(next(iter(spec.submodule_search_locations))).parent))
+    return list(dict.fromkeys(paths))
+
+
+def _environment(scene: Path, settings: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(POLARGS_DATA=str(scene), POLARGS_PRESET="synthetic", POLARGS_CONFIG=str(settings))
+    env["PYTHONPATH"] = os.pathsep.join([*_package_paths(), *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+def _run(label: str, script: Path, request: DryRunRequest, scene: Path, env: dict[str, str], port: int
+         ) -> tuple[dict, Path]:
+    """One launch; returns its report (a failure report when it wrote none) and its log."""
+    model_path = request.workdir / f"run-{label}"
+    report_path = request.workdir / f"report-{label}.json"
+    log_path = request.workdir / f"{label}.log"
+    report_path.unlink(missing_ok=True)
+    spec = TRAINERS[request.trainer]
+    arguments = ["-s", str(scene / "colmap"), "-m", str(model_path), "--port", str(port),
+                 *schedule_arguments(spec, request.iterations, request.interval), *request.train_arguments]
+    command = [sys.executable, "-m", "polargs_plugin.dryrun.launch", "--trainer", request.trainer,
+               "--checkout", str(request.checkout), "--script", str(script), "--report", str(report_path),
+               "--model-path", str(model_path), "--", *arguments]
+    with open(log_path, "w") as log:
+        try:
+            subprocess.run(command, cwd=request.checkout, env=env, stdout=log, stderr=subprocess.STDOUT,
+                           timeout=request.timeout, check=False)
+        except subprocess.TimeoutExpired:
+            return {"finished": False, "error": f"no result within {request.timeout:.0f} s"}, log_path
+    if not report_path.is_file():
+        return {"finished": False, "error": f"the run wrote no report (see {log_path})"}, log_path
+    return json.loads(report_path.read_text()), log_path
+
+
+def dry_run(request: DryRunRequest, progress: Callable[[str], None] | None = None) -> DryRunResult:
+    """Run the patched and (with ``compare``) unpatched ``train.py`` of ``request.checkout`` and
+    check them (module docstring).
+
+    Raises:
+        PolarInputError: an unknown trainer, no ``train.py``, an unpatched one, too few iterations.
+    """
+    say = progress or (lambda message: None)
+    if request.iterations < 4 * request.interval or request.interval < 1:
+        raise PolarInputError("--iters", f"needs at least 4 intervals of {request.interval} iterations")
+    script, text = _train_script(request.checkout, request.trainer)
+    request.workdir.mkdir(parents=True, exist_ok=True)
+    say(f"scene: {request.scene}, {request.views} views of {request.width}x{request.height}")
+    scene = _scene(request)
+    settings = request.workdir / "polargs_settings.json"
+    with atomic_write(settings) as handle:
+        json.dump(dense_settings(request.iterations, request.interval), handle, indent=1)
+    env, port = _environment(scene, settings), _free_port()
+    runs = [("patched", script)]
+    if request.compare:
+        unpatched = request.workdir / "train_unpatched.py"
+        with atomic_write(unpatched) as handle:
+            handle.write(strip_marked(text))
+        runs.append(("unpatched", unpatched))
+    result = DryRunResult(checks=[])
+    for label, path in runs:
+        say(f"{label}: {request.iterations} iterations of {script}")
+        result.reports[label], result.logs[label] = _run(label, path, request, scene, env, port)
+    result.checks = verdict(result.reports, request.iterations)
+    return result
+
+
+def _mean_step(report: dict) -> float | None:
+    steps = report.get("step_seconds") or []
+    steps = steps[WARMUP_STEPS:] if len(steps) > 2 * WARMUP_STEPS else steps
+    return mean(steps) if steps else None
+
+
+def verdict(reports: dict[str, dict], iterations: int) -> list[Check]:
+    """The checks of the runs' reports (``patched`` required, ``unpatched`` optional)."""
+    checks = []
+    for label, report in reports.items():
+        done = report.get("iterations", 0)
+        detail = f"{label}: {done}/{iterations} iterations"
+        if report.get("error"):
+            detail += f"; {report['error'].splitlines()[-1]}"
+        checks.append(Check(f"finished ({label})", bool(report.get("finished")) and done >= iterations - 1, detail))
+    for label, report in reports.items():
+        first, last = report.get("loss_first"), report.get("loss_last")
+        finite = bool(report.get("losses_finite")) and report.get("iterations", 0) > 0
+        detail = f"{label}: first {first}, last {last}" if finite else \
+            f"{label}: not finite from iteration {report.get('first_nonfinite')}"
+        checks.append(Check(f"loss finite ({label})", finite, detail))
+    checks.append(_dense_check(reports["patched"]))
+    for label, report in reports.items():
+        problems = report.get("problems") or []
+        detail = "every per-Gaussian statistic and optimizer state had one row per Gaussian after every step" \
+            if not problems else f"{len(problems)} problem(s), first: {problems[0]}"
+        checks.append(Check(f"per-Gaussian state ({label})", report.get("iterations", 0) > 0 and not problems, detail))
+    checkpoint = reports["patched"].get("checkpoint") or {"ok": False, "detail": "no checkpoint check"}
+    checks.append(Check("checkpoint (patched)", bool(checkpoint["ok"]), checkpoint["detail"]))
+    if "unpatched" in reports:
+        patched, unpatched = _mean_step(reports["patched"]), _mean_step(reports["unpatched"])
+        detail = "no step times" if not (patched and unpatched) else \
+            f"{patched * 1000:.1f} ms / {unpatched * 1000:.1f} ms = {patched / unpatched:.2f}x (CPU stand-ins, not a GPU figure)"
+        checks.append(Check("step time patched / unpatched", None, detail))
+    return checks
+
+
+def _dense_check(report: dict) -> Check:
+    """Dense appended rows, the trainer's own densification ran after the first append, and
+    rows of Dense were still there at the end."""
+    rounds = report.get("dense_rounds") or []
+    appended = sum(count for _, count in rounds)
+    first = next((it for it, count in rounds if count > 0), None)
+    later = [it for it in report.get("native_densify") or [] if first is not None and it >= first]
+    left = report.get("dense_rows_final")
+    detail = (f"{appended} Gaussians appended in {sum(1 for _, c in rounds if c > 0)}/{len(rounds)} Dense calls; "
+              f"{len(later)} native densify/prune passes after the first append; "
+              f"{left if left is not None else 'unknown'} of Dense's rows left at the end "
+              f"({report.get('gaussians_initial')} -> {report.get('gaussians_final')} Gaussians)")
+    if report.get("rows_lost"):
+        detail += f"; rows not tracked after {report['rows_lost']}"
+    ok = appended > 0 and bool(later) and bool(left)
+    return Check("Dense appended and survived (patched)", ok, detail)
+
+
+def describe(checks: Sequence[Check]) -> list[str]:
+    """One printed line per check: ``ok``, ``FAIL`` or ``info``, the name, the figures."""
+    word = {True: "ok  ", False: "FAIL", None: "info"}
+    width = max((len(c.name) for c in checks), default=0)
+    return [f"{word[c.ok]}  {c.name:<{width}}  {c.detail}" for c in checks]
