@@ -668,11 +668,12 @@ def revert_file(path: Path, dry_run: bool = False, force: bool = False) -> str:
 # command line
 
 
-def build_parser(description: str) -> argparse.ArgumentParser:
-    """The command line every ``adapters/<name>/patch.py`` shares."""
+def build_parser(description: str, filename: str = "train.py") -> argparse.ArgumentParser:
+    """The command line every ``adapters/<name>/patch.py`` shares (``filename``: the file patched
+    in a checkout folder by default)."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkout", help="the trainer's checkout (folder holding train.py) or the file itself")
-    parser.add_argument("--file", default="train.py", help="file to patch inside the checkout (default: train.py)")
+    parser.add_argument("checkout", help=f"the trainer's checkout (folder holding {filename}) or the file itself")
+    parser.add_argument("--file", default=filename, help=f"file to patch inside the checkout (default: {filename})")
     parser.add_argument("--dry-run", action="store_true", help="print the unified diff, write nothing")
     parser.add_argument(
         "--revert", action="store_true", help=f"restore the file from <file>{BACKUP_SUFFIX} and remove the backup"
@@ -685,9 +686,9 @@ def build_parser(description: str) -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None, anchors: Sequence[Anchor], description: str = "") -> int:
+def main(argv: Sequence[str] | None, anchors: Sequence[Anchor], description: str = "", filename: str = "train.py") -> int:
     """Entry point of a patch script: parse ``argv``, patch / dry-run / revert, return the exit status."""
-    args = build_parser(description).parse_args(argv)
+    args = build_parser(description, filename).parse_args(argv)
     try:
         path = resolve_target(args.checkout, args.file)
         if args.revert:
