@@ -418,11 +418,15 @@ def patched_text(current: str, anchors: Sequence[Anchor], filename: str) -> str:
     if (problem := _compiles(new, filename)) is not None:
         raise PatchError(f"{filename}: the patched file would not compile ({problem}); nothing written")
     inserted = [i + 1 for i, line in enumerate(new.splitlines()) if is_marked(line)]
+
+    def base_line(line: int) -> int:  # a line of the patched text -> the un-patched file's line
+        return line - sum(1 for marked in inserted if marked < line)
+
     for line, name, bound_at in unbound_reads(new, inserted):
-        where = f"first bound at L{bound_at}, below it" if bound_at else "not bound in its scope"
+        where = f"first bound at L{base_line(bound_at)}, below it" if bound_at else "not bound in its scope"
         raise PatchError(
-            f"{filename}: the inserted line L{line} would read '{name}' before it is bound ({where});"
-            " nothing written"
+            f"{filename}: the line to insert above L{base_line(line)} would read '{name}' before it is bound"
+            f" ({where}); nothing written"
         )
     return new
 
