@@ -47,6 +47,7 @@ from polargs_plugin.geometry import eval_sh  # noqa: E402
 from polargs_plugin.backends.reference.rasterizer import rasterize, resolve_backend  # noqa: E402
 from polargs_plugin.kit import logit, rgb_to_sh  # noqa: E402
 from polargs_plugin.losses import photometric_loss  # noqa: E402
+from polargs_plugin.io import PolarInputError  # noqa: E402
 from polargs_plugin.types import NewGaussians, View  # noqa: E402
 
 SIZE = 40
@@ -57,10 +58,11 @@ SH_DEGREE = 1
 def rasterization(
     means, quats, scales, opacities, colors, viewmats, Ks, width, height,
     near_plane=0.01, far_plane=1e10, eps2d=0.3, sh_degree=None, packed=False, tile_size=16,
-    backgrounds=None, render_mode="RGB", absgrad=False, **unused,
+    backgrounds=None, render_mode="RGB", absgrad=False, rasterize_mode="classic", **unused,
 ):
     """gsplat.rasterization's contract for one camera, unpacked, on CPU (reference rasterizer)."""
     assert not packed and not absgrad and not unused, "the stand-in renders unpacked, without absgrad"
+    assert rasterize_mode == "classic", "the stand-in has no antialiased mode"
     assert viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3)
     K, w2c = Ks[0], viewmats[0]
     if sh_degree is not None:
@@ -662,3 +664,78 @@ def test_sh_colors_through_either_spherical_harmonics_signature(sh_fn):
         torch.testing.assert_close(sh_colors(params, w2c[None], degree, sh_fn=sh_fn), expected, atol=1e-6, rtol=1e-5)
     with pytest.raises(TypeError, match="gsplat 1.6"):
         sh_colors(params, w2c, 1, sh_fn=lambda degree, directions, coefficients: None)
+
+
+# ------------------------------------------------------------- simple_trainer.py's Runner, attached
+class _Parser:
+    """simple_trainer's COLMAP parser: what ``trainer_views`` reads of it."""
+
+    def __init__(self, views):
+        self.image_names = [f"{view.name}.JPG" for view in views]  # matched to the dataset by stem
+        self.camera_ids = list(range(len(views)))
+        self.camtoworlds = [torch.linalg.inv(view.world_to_camera).numpy() for view in views]
+        self.Ks_dict = {i: view.K.numpy() for i, view in enumerate(views)}
+        self.imsize_dict = {i: (view.width, view.height) for i, view in enumerate(views)}
+
+
+def _runner(views, strategy):
+    from types import SimpleNamespace
+
+    params, optimizers = _splats(views)
+    cfg = SimpleNamespace(strategy=strategy, batch_size=1, packed=False, near_plane=0.01, far_plane=1e10,
+                          antialiased=False, patch_size=None)
+    # image 1 is a test view, as simple_trainer's split leaves every test_every-th image out
+    return SimpleNamespace(cfg=cfg, parser=_Parser(views), trainset=_Trainset([0, 2, 3, 4]), splats=params,
+                           optimizers=optimizers, world_size=1)
+
+
+class _Trainset:
+    def __init__(self, indices):
+        self.indices = indices
+
+    def __len__(self):
+        return len(self.indices)
+
+
+def test_attach_to_simple_trainers_runner(scene):
+    from polargs_adapters.gsplat import SimpleTrainerPolar
+
+    views = scene.views
+    config = _hooks(views).config
+    config.correction.enabled = False  # geometry terms only: their gradient path is under test
+    config.losses.use_scale = False
+    inner = DefaultStrategy(refine_every=7, refine_stop_iter=0, verbose=False)
+    runner = _runner(views, inner)
+    polar = SimpleTrainerPolar(runner, views, config, "fake", rasterize=rasterization)
+
+    strategy = runner.cfg.strategy
+    assert isinstance(strategy, PolarDefaultStrategy) and strategy.refine_every == 7 and strategy.hooks is polar.hooks
+    assert [view.name for view in polar.views] == [f"{views[i].name}.JPG" for i in (0, 2, 3, 4)]
+    for view, index in zip(polar.views, (0, 2, 3, 4)):
+        torch.testing.assert_close(view.world_to_camera, views[index].world_to_camera.double(), atol=1e-6, rtol=0)
+        torch.testing.assert_close(view.K, views[index].K.double(), atol=0, rtol=0)
+        assert torch.equal(view.stokes, views[index].stokes)
+
+    # one simple_trainer step on training item 1 (parser image 2), past depth_normal_from_iter
+    step, item = 30, 1
+    params = runner.splats
+    camtoworlds = torch.linalg.inv(views[2].world_to_camera.float())[None]
+    Ks = views[2].K.float()[None]
+    renders, alphas, info = rasterization(
+        params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
+        torch.cat([params["sh0"], params["shN"]], 1), torch.linalg.inv(camtoworlds), Ks, SIZE, SIZE,
+        sh_degree=SH_DEGREE,
+    )
+    strategy.step_pre_backward(params, runner.optimizers, strategy.initialize_state(), step, info)
+    extra = polar.loss(step, torch.tensor([item]), camtoworlds, Ks, renders, alphas, info)
+    assert {"l_dn"} <= set(polar.logs) and extra.requires_grad and torch.isfinite(extra)
+    extra.backward()
+    # the geometric terms came through the second render: the strategy's means2d saw none of it
+    assert info["means2d"].grad is None or not info["means2d"].grad.any()
+    assert params["means"].grad is not None and params["means"].grad.abs().sum() > 0
+    assert info["polar_view"] is polar.views[item] and not info["polar_render"].normal.requires_grad
+
+    batched = _runner(views, DefaultStrategy())
+    batched.cfg.batch_size = 4
+    with pytest.raises(PolarInputError, match="batch_size 1"):
+        SimpleTrainerPolar(batched, views, config, rasterize=rasterization)

@@ -197,6 +197,16 @@ class PolarDense:
         state["polar"] = {"calls": 0, "appended": 0, "dropped_cap": 0, "last_step": -1}
         return state
 
+    def check_sanity(self, params: Params, optimizers: Dict[str, torch.optim.Optimizer]) -> None:
+        """gsplat's checks of the strategy this is mixed into, plus the PolarGS ones: ``hooks``
+        set, a colour parameter (``sh0`` or ``colors``), and, with Dense on, preprocessed hooks.
+
+        Raises:
+            AssertionError: as gsplat's own ``check_sanity``.
+        """
+        super().check_sanity(params, optimizers)  # type: ignore[misc]
+        self._check_polar(params)
+
     def _check_polar(self, params: Params) -> None:
         assert self.hooks is not None, f"{type(self).__name__}.hooks is required (a PolarHooks)"
         assert "sh0" in params or "colors" in params or "sh0" in self.extra_rows, (
@@ -432,11 +442,6 @@ class PolarDefaultStrategy(PolarDense, DefaultStrategy):
         """DefaultStrategy's state plus ``state["polar"]`` (counters, as :class:`PolarStrategy`)."""
         return self._with_polar_state(super().initialize_state(scene_scale=scene_scale))
 
-    def check_sanity(self, params: Params, optimizers: Dict[str, torch.optim.Optimizer]) -> None:
-        """DefaultStrategy's checks, plus the PolarGS ones (:meth:`PolarStrategy.check_sanity`)."""
-        super().check_sanity(params, optimizers)
-        self._check_polar(params)
-
     def step_post_backward(
         self,
         params: Params,
@@ -474,11 +479,6 @@ class PolarMCMCStrategy(PolarDense, MCMCStrategy):
     def initialize_state(self) -> Dict[str, Any]:
         """MCMCStrategy's state plus ``state["polar"]`` (counters, as :class:`PolarStrategy`)."""
         return self._with_polar_state(super().initialize_state())
-
-    def check_sanity(self, params: Params, optimizers: Dict[str, torch.optim.Optimizer]) -> None:
-        """MCMCStrategy's checks, plus the PolarGS ones (:meth:`PolarStrategy.check_sanity`)."""
-        super().check_sanity(params, optimizers)
-        self._check_polar(params)
 
     def step_post_backward(
         self,
