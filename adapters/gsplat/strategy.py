@@ -150,7 +150,7 @@ def _index_new(new: NewGaussians, index: Tensor) -> NewGaussians:
     )
 
 
-def gsplat_step_kwargs(step_fn: Callable[..., Any], **candidates: Any) -> Dict[str, Any]:
+def _step_kwargs(step_fn: Callable[..., Any], **candidates: Any) -> Dict[str, Any]:
     """The keyword arguments of ``candidates`` that a gsplat ``step_post_backward`` takes.
 
     ``packed`` (DefaultStrategy), ``lr`` (MCMCStrategy, required there) and ``scene`` (gsplat
@@ -291,18 +291,6 @@ class PolarDense:
         return new
 
 
-_POLAR_FIELDS_DOC = """
-        hooks (TrainingHooks): the PolarGS hooks (a ``PolarHooks``), already ``preprocess``-ed
-            with the training views (their names are how Dense finds a view's maps and sources).
-            Required; a dataclass default of None only keeps gsplat's all-keyword style.
-        render_fn (callable): ``render_fn(view) -> RenderOut`` with the current Gaussians, for the
-            PatchMatch source views (:func:`make_render_fn`). Default None: taken from
-            ``info["polar_render_fn"]`` / the ``render_fn=`` argument of ``step_post_backward``.
-        extra_rows (dict): ``name -> fn(new, param) -> rows`` for extra per-Gaussian parameters
-            (see :func:`rows_from_new`).
-"""
-
-
 @dataclass
 class PolarStrategy(PolarDense, Strategy):
     """A gsplat strategy composing an inner strategy with PolarGS densification (Dense).
@@ -414,7 +402,7 @@ class PolarStrategy(PolarDense, Strategy):
             The appended Gaussians (after the cap), or None.
         """
         step_fn = self.inner.step_post_backward
-        kwargs = gsplat_step_kwargs(step_fn, packed=packed, lr=lr, scene=scene)
+        kwargs = _step_kwargs(step_fn, packed=packed, lr=lr, scene=scene)
         step_fn(params, optimizers, state, step, info, **kwargs)
         return self._dense(params, optimizers, state, step, info, scene, view, render, render_fn)
 
@@ -428,8 +416,17 @@ class PolarDefaultStrategy(PolarDense, DefaultStrategy):
     """gsplat's ``DefaultStrategy`` (every field and step unchanged) followed by PolarGS's Dense.
 
     A subclass, so ``simple_trainer.py``'s ``isinstance(strategy, DefaultStrategy)`` dispatch
-    takes it. Fields besides DefaultStrategy's:
-""" + _POLAR_FIELDS_DOC + """        cap_max (int): no Polar append beyond this many Gaussians (default None: unlimited;
+    takes it. Its fields are DefaultStrategy's and these:
+
+    Args:
+        hooks (TrainingHooks): the PolarGS hooks (a ``PolarHooks``), already ``preprocess``-ed
+            with the training views. Required; a default of None keeps gsplat's all-keyword style.
+        render_fn (callable): ``render_fn(view) -> RenderOut`` with the current Gaussians, for the
+            PatchMatch source views (:func:`make_render_fn`); or ``info["polar_render_fn"]`` /
+            the ``render_fn=`` argument of ``step_post_backward``.
+        extra_rows (dict): ``name -> fn(new, param) -> rows`` for extra per-Gaussian parameters
+            (:func:`rows_from_new`).
+        cap_max (int): no Polar append beyond this many Gaussians (default None: unlimited;
             an evenly spaced subset of the new rows is kept when they do not fit).
     """
 
@@ -459,7 +456,7 @@ class PolarDefaultStrategy(PolarDense, DefaultStrategy):
         """DefaultStrategy's step (``scene`` passed on with gsplat main), then Dense; the
         arguments are :meth:`PolarStrategy.step_post_backward`'s."""
         step_fn = super().step_post_backward
-        step_fn(params, optimizers, state, step, info, **gsplat_step_kwargs(step_fn, packed=packed, scene=scene))
+        step_fn(params, optimizers, state, step, info, **_step_kwargs(step_fn, packed=packed, scene=scene))
         return self._dense(params, optimizers, state, step, info, scene, view, render, render_fn)
 
 
@@ -469,8 +466,17 @@ class PolarMCMCStrategy(PolarDense, MCMCStrategy):
 
     A subclass, so ``simple_trainer.py``'s ``isinstance(strategy, MCMCStrategy)`` dispatch takes
     it. Dense's appends count against MCMC's ``cap_max`` (an evenly spaced subset of the new rows
-    is kept when they do not fit). Fields besides MCMCStrategy's:
-""" + _POLAR_FIELDS_DOC + """    """
+    is kept when they do not fit). Its fields are MCMCStrategy's and these:
+
+    Args:
+        hooks (TrainingHooks): the PolarGS hooks (a ``PolarHooks``), already ``preprocess``-ed
+            with the training views. Required; a default of None keeps gsplat's all-keyword style.
+        render_fn (callable): ``render_fn(view) -> RenderOut`` with the current Gaussians, for the
+            PatchMatch source views (:func:`make_render_fn`); or ``info["polar_render_fn"]`` /
+            the ``render_fn=`` argument of ``step_post_backward``.
+        extra_rows (dict): ``name -> fn(new, param) -> rows`` for extra per-Gaussian parameters
+            (:func:`rows_from_new`).
+    """
 
     hooks: Optional[TrainingHooks] = None
     render_fn: Optional[RenderFn] = None
@@ -497,7 +503,7 @@ class PolarMCMCStrategy(PolarDense, MCMCStrategy):
         """MCMCStrategy's step (``lr`` required; ``scene`` passed on with gsplat main), then
         Dense; the arguments are :meth:`PolarStrategy.step_post_backward`'s."""
         step_fn = super().step_post_backward
-        step_fn(params, optimizers, state, step, info, **gsplat_step_kwargs(step_fn, lr=lr, scene=scene))
+        step_fn(params, optimizers, state, step, info, **_step_kwargs(step_fn, lr=lr, scene=scene))
         return self._dense(params, optimizers, state, step, info, scene, view, render, render_fn)
 
 
