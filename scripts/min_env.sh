@@ -6,7 +6,7 @@
 #
 # The environment is cached outside the checkout, keyed by the pins, and reused while they do
 # not change: ${POLARGS_MIN_ENV_CACHE:-~/.cache/polargs_plugin/min-env}/<key>. The first build
-# downloads about 2.5 GB: PyPI's Linux wheels of torch 2.1 are CUDA builds that import only with
+# downloads about 2.5 GB: PyPI's Linux wheels of torch 2.3 are CUDA builds that import only with
 # their nvidia-* libraries (they run on the CPU all the same); CPU-only builds come from
 # PyTorch's own index, which is not used here.
 #
