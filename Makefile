@@ -4,7 +4,7 @@ SCENE ?= glossy_plane_sphere
 OUT ?= out/demo
 EXTRAS ?= dev,sfm,docs
 
-.PHONY: setup demo test test-fast docs check-wheel bench
+.PHONY: setup demo test test-fast test-min docs check-wheel bench
 
 setup:
 	@EXTRAS=$(EXTRAS) bash scripts/setup_env.sh
@@ -26,6 +26,12 @@ docs: setup
 # numba kernels are compiled and cached).
 test-fast: setup
 	OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -p no:cacheprovider -m "not slow"
+
+# The lowest declared versions of the dependencies (pyproject.toml's floors, pinned) in a second
+# environment, cached under ~/.cache/polargs_plugin/min-env and reused; then the plug-in path's
+# tests (hooks, losses, correction, densification, kit, adapters' stand-ins, patch scripts).
+test-min:
+	bash scripts/min_env.sh
 
 # sdist + wheel, the wheel installed into a fresh venv: `polargs --help` and every adapter import.
 check-wheel: setup

@@ -23,7 +23,11 @@ from gsplat.strategy import DefaultStrategy, MCMCStrategy  # noqa: E402
 
 from polargs_adapters.gsplat import (  # noqa: E402
     NOT_PER_GAUSSIAN,
+    PolarDefaultStrategy,
+    PolarMCMCStrategy,
     PolarStrategy,
+    nearest_rows,
+    polar_strategy,
     gaussian_state,
     gsplat_cameras,
     make_render_fn,
@@ -43,6 +47,7 @@ from polargs_plugin.geometry import eval_sh  # noqa: E402
 from polargs_plugin.backends.reference.rasterizer import rasterize, resolve_backend  # noqa: E402
 from polargs_plugin.kit import logit, rgb_to_sh  # noqa: E402
 from polargs_plugin.losses import photometric_loss  # noqa: E402
+from polargs_plugin.io import PolarInputError  # noqa: E402
 from polargs_plugin.types import NewGaussians, View  # noqa: E402
 
 SIZE = 40
@@ -53,10 +58,11 @@ SH_DEGREE = 1
 def rasterization(
     means, quats, scales, opacities, colors, viewmats, Ks, width, height,
     near_plane=0.01, far_plane=1e10, eps2d=0.3, sh_degree=None, packed=False, tile_size=16,
-    backgrounds=None, render_mode="RGB", absgrad=False, **unused,
+    backgrounds=None, render_mode="RGB", absgrad=False, rasterize_mode="classic", **unused,
 ):
     """gsplat.rasterization's contract for one camera, unpacked, on CPU (reference rasterizer)."""
     assert not packed and not absgrad and not unused, "the stand-in renders unpacked, without absgrad"
+    assert rasterize_mode == "classic", "the stand-in has no antialiased mode"
     assert viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3)
     K, w2c = Ks[0], viewmats[0]
     if sh_degree is not None:
@@ -519,3 +525,217 @@ def test_gaussian_state_activates_gsplat_params():
     torch.testing.assert_close(state.opacities, torch.sigmoid(params["opacities"]))
     torch.testing.assert_close(state.quats.norm(dim=-1), torch.ones(5))
     assert state.means is params["means"]
+
+
+# ------------------------------------------------- gsplat main: scene=, SH signature, subclasses
+class _RecordingScene:
+    """gsplat main's ``Scene`` topology hooks, recording their calls (the defaults are no-ops)."""
+
+    def __init__(self):
+        self.calls = []
+
+    def on_duplicate(self, sel):
+        self.calls.append(("on_duplicate", sel.clone()))
+
+
+class _MainDefault(DefaultStrategy):
+    """DefaultStrategy with gsplat main's signature: ``step_post_backward(..., packed, scene)``."""
+
+    def step_post_backward(self, params, optimizers, state, step, info, packed=False, scene=None):
+        self.seen_scene = scene
+        super().step_post_backward(params, optimizers, state, step, info, packed=packed)
+
+
+class _MainMCMC(MCMCStrategy):
+    """MCMCStrategy with gsplat main's signature: ``step_post_backward(..., lr, scene)``."""
+
+    def step_post_backward(self, params, optimizers, state, step, info, lr, scene=None):
+        self.seen_scene = scene
+        super().step_post_backward(params, optimizers, state, step, info, lr=lr)
+
+
+class _PolarOnMainDefault(PolarDefaultStrategy, _MainDefault):
+    """PolarDefaultStrategy as it is on gsplat main (its parent step takes scene=)."""
+
+
+class _PolarOnMainMCMC(PolarMCMCStrategy, _MainMCMC):
+    """PolarMCMCStrategy as it is on gsplat main."""
+
+
+def _nearest_brute_force(points, queries):
+    return torch.tensor([min(range(len(points)), key=lambda j: float(((points[j] - q) ** 2).sum())) for q in queries])
+
+
+def test_nearest_rows_in_chunks_equals_brute_force():
+    g = torch.Generator().manual_seed(5)
+    points, queries = torch.randn(40, 3, generator=g), torch.randn(17, 3, generator=g)
+    truth = _nearest_brute_force(points, queries)
+    for max_pairs in (1, 40, 41 * 3, 1 << 24):  # one query per chunk ... all at once
+        assert torch.equal(nearest_rows(points, queries, max_pairs=max_pairs), truth)
+
+
+@pytest.mark.parametrize("kind", ["default", "mcmc", "composed"])
+def test_scene_is_forwarded_and_told_about_appended_rows(kind, mcmc_on_cpu):
+    params, optimizers = _tiny_params(12)
+    old_means = params["means"].detach().clone()
+    new = _new(5)
+    hooks = _StubHooks(new, at=4)
+    scene = _RecordingScene()
+    if kind == "default":
+        strategy = _PolarOnMainDefault(hooks=hooks, render_fn=lambda v: None, refine_stop_iter=0)
+        state, kwargs = strategy.initialize_state(), {"packed": False}
+        inner = strategy
+    elif kind == "mcmc":
+        strategy = _PolarOnMainMCMC(hooks=hooks, render_fn=lambda v: None, refine_start_iter=10_000)
+        state, kwargs = strategy.initialize_state(), {"lr": 1e-3}
+        inner = strategy
+    else:
+        inner = _MainDefault(refine_stop_iter=0)
+        strategy = PolarStrategy(hooks=hooks, inner=inner, render_fn=lambda v: None)
+        state, kwargs = strategy.initialize_state(), {"packed": False}
+    if kind == "mcmc":  # MCMC's noise moves the means: the parents are the nearest after it
+        strategy.step_post_backward(params, optimizers, state, 2, {}, scene=scene, **kwargs)
+        old_means = params["means"].detach().clone()
+    appended = strategy.step_post_backward(params, optimizers, state, 3, {"polar_view": object()}, scene=scene,
+                                           **kwargs)
+    assert inner.seen_scene is scene  # passed to gsplat's own step
+    assert len(appended) == 5 and len(params["means"]) == 17
+    assert [name for name, _ in scene.calls] == ["on_duplicate"]
+    assert torch.equal(scene.calls[0][1], _nearest_brute_force(old_means, new.means))
+
+
+def test_scene_with_a_gsplat_without_scenes_is_an_error():
+    params, optimizers = _tiny_params(8)
+    strategy = PolarDefaultStrategy(hooks=_StubHooks(_new(2), at=99), render_fn=lambda v: None, refine_stop_iter=0)
+    state = strategy.initialize_state()
+    with pytest.raises(TypeError, match="takes no scene="):
+        strategy.step_post_backward(params, optimizers, state, 0, {}, scene=_RecordingScene())
+    strategy.step_post_backward(params, optimizers, state, 0, {})  # gsplat 1.5.3's own call works
+    mcmc = PolarMCMCStrategy(hooks=_StubHooks(_new(2), at=99), render_fn=lambda v: None)
+    with pytest.raises(ValueError, match="needs lr"):
+        mcmc.step_post_backward(params, optimizers, mcmc.initialize_state(), 0, {})
+
+
+def test_polar_strategy_keeps_the_settings_and_passes_simple_trainers_dispatch():
+    import pickle
+
+    yaml = pytest.importorskip("yaml")
+    default = polar_strategy(DefaultStrategy(verbose=True, refine_every=7, absgrad=True), hooks="H")
+    assert isinstance(default, PolarDefaultStrategy) and isinstance(default, DefaultStrategy)
+    assert (default.refine_every, default.verbose, default.absgrad, default.hooks) == (7, True, True, "H")
+    mcmc = polar_strategy(MCMCStrategy(cap_max=1234))
+    assert isinstance(mcmc, MCMCStrategy) and mcmc.cap_max == 1234 and mcmc._polar_cap() == 1234
+    assert polar_strategy(default, render_fn="R") is default and default.render_fn == "R"
+    with pytest.raises(TypeError, match="neither"):
+        polar_strategy(PolarStrategy())
+    # simple_trainer.py dumps its config with yaml; the run's hooks are not settings and stay out
+    dumped = yaml.dump({"strategy": default})
+    assert "refine_every: 7" in dumped and "hooks: null" in dumped
+    assert pickle.loads(pickle.dumps(default)).hooks is None
+
+
+def _sh_1_5(degrees_to_use, dirs, coeffs, masks=None):
+    """gsplat 1.5's signature, computed by gsplat's own torch reference."""
+    from gsplat.cuda._torch_impl import _spherical_harmonics
+
+    return _spherical_harmonics(degrees_to_use, dirs, coeffs)
+
+
+def _sh_main(degrees_to_use, means, viewmats, coeffs, masks=None, batch_ids=None, camera_ids=None,
+             gaussian_ids=None, viewmats_rs=None):
+    """gsplat main's signature: camera centres from the view matrices, [C, N, D] out."""
+    from gsplat.cuda._torch_impl import _spherical_harmonics
+
+    centers = torch.linalg.inv(viewmats)[:, :3, 3]
+    return torch.stack([_spherical_harmonics(degrees_to_use, means - c, coeffs) for c in centers])
+
+
+@pytest.mark.parametrize("sh_fn", [_sh_1_5, _sh_main], ids=["gsplat-1.5", "gsplat-main"])
+def test_sh_colors_through_either_spherical_harmonics_signature(sh_fn):
+    params, _ = _tiny_params(30)
+    with torch.no_grad():
+        params["shN"] = torch.nn.Parameter(torch.randn(30, 15, 3) * 0.3)
+    g = torch.Generator().manual_seed(2)
+    rotation = torch.linalg.qr(torch.randn(3, 3, generator=g))[0]
+    w2c = torch.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = rotation, torch.tensor([0.2, -0.1, 4.0])
+    for degree in range(4):
+        expected = sh_colors(params, w2c[None], degree)  # CPU: polargs_plugin.geometry.eval_sh
+        torch.testing.assert_close(sh_colors(params, w2c[None], degree, sh_fn=sh_fn), expected, atol=1e-6, rtol=1e-5)
+    with pytest.raises(TypeError, match="gsplat 1.6"):
+        sh_colors(params, w2c, 1, sh_fn=lambda degree, directions, coefficients: None)
+
+
+# ------------------------------------------------------------- simple_trainer.py's Runner, attached
+class _Parser:
+    """simple_trainer's COLMAP parser: what ``trainer_views`` reads of it."""
+
+    def __init__(self, views):
+        self.image_names = [f"{view.name}.JPG" for view in views]  # matched to the dataset by stem
+        self.camera_ids = list(range(len(views)))
+        self.camtoworlds = [torch.linalg.inv(view.world_to_camera).numpy() for view in views]
+        self.Ks_dict = {i: view.K.numpy() for i, view in enumerate(views)}
+        self.imsize_dict = {i: (view.width, view.height) for i, view in enumerate(views)}
+
+
+def _runner(views, strategy):
+    from types import SimpleNamespace
+
+    params, optimizers = _splats(views)
+    cfg = SimpleNamespace(strategy=strategy, batch_size=1, packed=False, near_plane=0.01, far_plane=1e10,
+                          antialiased=False, patch_size=None)
+    # image 1 is a test view, as simple_trainer's split leaves every test_every-th image out
+    return SimpleNamespace(cfg=cfg, parser=_Parser(views), trainset=_Trainset([0, 2, 3, 4]), splats=params,
+                           optimizers=optimizers, world_size=1)
+
+
+class _Trainset:
+    def __init__(self, indices):
+        self.indices = indices
+
+    def __len__(self):
+        return len(self.indices)
+
+
+def test_attach_to_simple_trainers_runner(scene):
+    from polargs_adapters.gsplat import SimpleTrainerPolar
+
+    views = scene.views
+    config = _hooks(views).config
+    config.correction.enabled = False  # geometry terms only: their gradient path is under test
+    config.losses.use_scale = False
+    inner = DefaultStrategy(refine_every=7, refine_stop_iter=0, verbose=False)
+    runner = _runner(views, inner)
+    polar = SimpleTrainerPolar(runner, views, config, "fake", rasterize=rasterization)
+
+    strategy = runner.cfg.strategy
+    assert isinstance(strategy, PolarDefaultStrategy) and strategy.refine_every == 7 and strategy.hooks is polar.hooks
+    assert [view.name for view in polar.views] == [f"{views[i].name}.JPG" for i in (0, 2, 3, 4)]
+    for view, index in zip(polar.views, (0, 2, 3, 4)):
+        torch.testing.assert_close(view.world_to_camera, views[index].world_to_camera.double(), atol=1e-6, rtol=0)
+        torch.testing.assert_close(view.K, views[index].K.double(), atol=0, rtol=0)
+        assert torch.equal(view.stokes, views[index].stokes)
+
+    # one simple_trainer step on training item 1 (parser image 2), past depth_normal_from_iter
+    step, item = 30, 1
+    params = runner.splats
+    camtoworlds = torch.linalg.inv(views[2].world_to_camera.float())[None]
+    Ks = views[2].K.float()[None]
+    renders, alphas, info = rasterization(
+        params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
+        torch.cat([params["sh0"], params["shN"]], 1), torch.linalg.inv(camtoworlds), Ks, SIZE, SIZE,
+        sh_degree=SH_DEGREE,
+    )
+    strategy.step_pre_backward(params, runner.optimizers, strategy.initialize_state(), step, info)
+    extra = polar.loss(step, torch.tensor([item]), camtoworlds, Ks, renders, alphas, info)
+    assert {"l_dn"} <= set(polar.logs) and extra.requires_grad and torch.isfinite(extra)
+    extra.backward()
+    # the geometric terms came through the second render: the strategy's means2d saw none of it
+    assert info["means2d"].grad is None or not info["means2d"].grad.any()
+    assert params["means"].grad is not None and params["means"].grad.abs().sum() > 0
+    assert info["polar_view"] is polar.views[item] and not info["polar_render"].normal.requires_grad
+
+    batched = _runner(views, DefaultStrategy())
+    batched.cfg.batch_size = 4
+    with pytest.raises(PolarInputError, match="batch_size 1"):
+        SimpleTrainerPolar(batched, views, config, rasterize=rasterization)

@@ -452,3 +452,210 @@ def test_script_runs_as_a_subprocess(case: Case, tmp_path: Path) -> None:
     assert done.returncode == 2
     assert done.stderr.startswith(f"error: {checkout / 'train.py'}: anchor 'loss backward' not found (")
     assert (checkout / "train.py").read_text() == broken
+
+
+# ----------------------------------------------------------------------------------------------
+# 2DGS, gsplat's simple_trainer.py (1.5.3 and main), mip-splatting
+
+
+TWODGS = Case("twodgs", "twodgs_1920a23_train.py", "scene, gaussians, pipe, render", "from argparse import ArgumentParser")
+GSPLAT_TRAINERS = ["gsplat_v1.5.3_simple_trainer.py", "gsplat_90d7b4b_simple_trainer.py"]
+GSPLAT_LINES = [  # (inserted line, its neighbour, where the neighbour sits)
+    ("import polargs_adapters.gsplat as polargs_gsplat", "from gsplat.strategy import DefaultStrategy", "above"),
+    ("        self.polar = polargs_gsplat.attach(self)", "        self.cfg.strategy.check_sanity(", "below"),
+    (
+        "            loss = loss + self.polar.loss(step, image_ids, camtoworlds, Ks, renders, alphas, info)",
+        "            loss.backward()",
+        "below",
+    ),
+]
+
+
+def round_trip(script: str, checkout: Path, target: Path, capsys: pytest.CaptureFixture[str]) -> str:
+    """Dry run (nothing written), patch, patch again (no change), revert (byte-identical); returns
+    the patched text."""
+    original = target.read_bytes()
+    patch = load_script(script)
+    filename = target.name
+    assert patching.main([str(checkout), "--dry-run"], patch.ANCHORS, "test", filename=filename) == 0
+    assert target.read_bytes() == original and sorted(p.name for p in checkout.iterdir()) == [filename]
+    assert patching.main([str(checkout)], patch.ANCHORS, "test", filename=filename) == 0
+    patched = target.read_text()
+    assert patching.main([str(checkout)], patch.ANCHORS, "test", filename=filename) == 0
+    assert target.read_text() == patched and "already patched, no change" in capsys.readouterr().out
+    assert patching.main([str(checkout), "--revert"], patch.ANCHORS, "test", filename=filename) == 0
+    assert target.read_bytes() == original and sorted(p.name for p in checkout.iterdir()) == [filename]
+    return patched
+
+
+def test_twodgs_round_trip_puts_densify_in_the_first_no_grad_block(tmp_path: Path, capsys) -> None:
+    checkout = copy_fixture(tmp_path, TWODGS.fixture)
+    patched = round_trip("twodgs", checkout, checkout / "train.py", capsys)
+    assert_inserted(patched, TWODGS, Names(loss="total_loss"))
+    lines = patched.splitlines()
+    densify = next(i for i, line in enumerate(lines) if "polar.densify(" in line)
+    blocks = [i for i, line in enumerate(lines) if line.strip() == "with torch.no_grad():"]
+    assert len(blocks) == 2 and blocks[0] < densify < blocks[1]
+
+
+@pytest.mark.parametrize("fixture", GSPLAT_TRAINERS)
+def test_gsplat_simple_trainer_round_trip(fixture: str, tmp_path: Path, capsys) -> None:
+    checkout = tmp_path / "examples"
+    checkout.mkdir()
+    target = checkout / "simple_trainer.py"
+    target.write_bytes((TRAINERS / fixture).read_bytes())
+    patched = round_trip("gsplat", checkout, target, capsys)
+    lines = patched.splitlines()
+    assert sum(line.endswith(MARKER) for line in lines) == len(GSPLAT_LINES)
+    for text, neighbour, side in GSPLAT_LINES:
+        i = lines.index(f"{text}  {MARKER}")
+        other = lines[i + 1] if side == "below" else lines[i - 1]
+        assert other.startswith(neighbour), (text, other)
+    compile(patched, "simple_trainer.py", "exec")
+
+
+def test_gsplat_refuses_a_trainer_whose_strategy_is_not_stepped_after_backward(tmp_path: Path, capsys) -> None:
+    text = (TRAINERS / GSPLAT_TRAINERS[0]).read_text().replace("strategy.step_post_backward(", "strategy.other(")
+    checkout = tmp_path / "examples"
+    checkout.mkdir()
+    (checkout / "simple_trainer.py").write_text(text)
+    assert patching.main([str(checkout)], load_script("gsplat").ANCHORS, "test", filename="simple_trainer.py") == 2
+    assert "anchor 'step_post_backward' not found" in capsys.readouterr().err
+    assert (checkout / "simple_trainer.py").read_text() == text
+
+
+REFUSALS = [
+    ("graphdeco", "mip_dda02ab_train.py", "passes kernel_size, as mip-splatting and GOF do: mip-splatting's loop is not supported"),
+    ("gof", "mip_dda02ab_train.py", "mip-splatting's loop is not supported"),
+    ("graphdeco", "twodgs_1920a23_train.py", "the loop reads 2DGS's outputs: use adapters/twodgs/patch.py"),
+    ("twodgs", "graphdeco_2023_train.py", "anchor '2DGS outputs' not found"),
+]
+
+
+@pytest.mark.parametrize(("script", "fixture", "message"), REFUSALS, ids=[f"{s}-{f.split('_')[0]}" for s, f, _ in REFUSALS])
+def test_relatives_are_refused_in_one_line(script: str, fixture: str, message: str, tmp_path: Path, capsys) -> None:
+    checkout = copy_fixture(tmp_path, fixture)
+    text = (checkout / "train.py").read_text()
+    assert patching.main([str(checkout)], load_script(script).ANCHORS, "test") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {checkout / 'train.py'}: ") and message in err
+    assert (checkout / "train.py").read_text() == text
+    assert sorted(p.name for p in checkout.iterdir()) == ["train.py"]
+
+
+def test_a_render_keyword_bound_inside_the_loop_is_refused_before_writing(tmp_path: Path, capsys) -> None:
+    """attach() runs above the loop: copying a keyword whose value is assigned in the loop would
+    fail at run time with UnboundLocalError (mip-splatting's subpixel_offset, on any fork)."""
+    text = fixture_text(CASES[0]).replace(
+        "        render_pkg = render(viewpoint_cam, gaussians, pipe, bg)\n",
+        "        jitter = bg * 0.5\n        render_pkg = render(viewpoint_cam, gaussians, pipe, bg, offset=jitter)\n",
+    )
+    checkout = copy_fixture(tmp_path, CASES[0].fixture, text)
+    assert run_main(CASES[0], str(checkout)) == 2
+    err = capsys.readouterr().err
+    lines = text.splitlines()
+    jitter_line = lines.index("        jitter = bg * 0.5") + 1
+    loop_line = next(i for i, line in enumerate(lines) if line.startswith("    for iteration in range(")) + 1
+    assert err.count("\n") == 1
+    assert f"the line to insert above L{loop_line} would read 'jitter' before it is bound" in err
+    assert f"(first bound at L{jitter_line}, below it)" in err
+    assert (checkout / "train.py").read_text() == text
+    # bound above the loop, the same keyword is handed to attach
+    above = fixture_text(CASES[0]).replace("    first_iter += 1\n", "    first_iter += 1\n    jitter = None\n").replace(
+        "render(viewpoint_cam, gaussians, pipe, bg)", "render(viewpoint_cam, gaussians, pipe, bg, offset=jitter)")
+    (checkout / "train.py").write_text(above)
+    assert run_main(CASES[0], str(checkout)) == 0
+    assert "attach(scene, gaussians, pipe, render, offset=jitter)" in (checkout / "train.py").read_text()
+
+
+def test_unbound_reads_follows_scopes() -> None:
+    text = (
+        "import os\n"            # 1
+        "def f(a):\n"            # 2
+        "    b = a\n"            # 3
+        "    c = b + a + g\n"    # 4: g is a module name bound later: fine in a function
+        "    d = e\n"            # 5: e bound below
+        "    e = len([x for x in a])\n"  # 6: comprehension variable, builtin
+        "g = 1\n"                # 7
+        "h = k\n"                # 8: k bound below, at module level
+        "k = 2\n"                # 9
+    )
+    assert patching.unbound_reads(text, [3, 4, 5, 6, 8]) == [(5, "e", 6), (8, "k", 9)]
+
+
+def test_read_only_file_is_refused_unless_forced(tmp_path: Path, capsys) -> None:
+    case = CASES[0]
+    checkout = copy_fixture(tmp_path, case.fixture, mode=0o444)
+    target = checkout / "train.py"
+    original = target.read_bytes()
+    assert run_main(case, str(checkout)) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {target}: read-only (mode 0444); --force patches it anyway, keeping the mode\n"
+    assert target.read_bytes() == original and sorted(p.name for p in checkout.iterdir()) == ["train.py"]
+    assert run_main(case, str(checkout), "--dry-run") == 0  # a dry run writes nothing: allowed
+    assert run_main(case, str(checkout), "--force") == 0
+    assert_inserted(target.read_text(), case)
+    assert stat.S_IMODE(target.stat().st_mode) == 0o444
+    assert run_main(case, str(checkout), "--revert") == 2
+    assert "--force reverts it anyway" in capsys.readouterr().err
+    assert run_main(case, str(checkout), "--revert", "--force") == 0
+    assert target.read_bytes() == original and stat.S_IMODE(target.stat().st_mode) == 0o444
+
+
+# ----------------------------------------------------------------------------------------------
+# the engine needs only the standard library
+
+ENGINE_FILES = [
+    ROOT / "src" / "polargs_plugin" / "kit" / "patching.py",
+    ROOT / "src" / "polargs_plugin" / "kit" / "inria_anchors.py",
+    ROOT / "adapters" / "patch_engine.py",
+    *sorted((ROOT / "adapters").glob("*/patch.py")),
+]
+
+
+@pytest.mark.parametrize("path", ENGINE_FILES, ids=[str(p.relative_to(ROOT)) for p in ENGINE_FILES])
+def test_engine_files_are_python_3_8(path: Path) -> None:
+    import ast
+
+    ast.parse(path.read_text(), str(path), feature_version=(3, 8))
+    imported = {
+        alias.name.split(".")[0]
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Import)
+        for alias in node.names
+    } | {
+        node.module.split(".")[0]
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0
+    }
+    assert imported <= set(sys.stdlib_module_names) | {"__future__"}, imported - set(sys.stdlib_module_names)
+
+
+SCRIPT_TARGETS = [
+    ("graphdeco", "graphdeco_2024_train.py", "train.py"),
+    ("gof", "gof_5245b20_train.py", "train.py"),
+    ("pgsr", "pgsr_de24f1a_train.py", "train.py"),
+    ("twodgs", "twodgs_1920a23_train.py", "train.py"),
+    ("gsplat", "gsplat_90d7b4b_simple_trainer.py", "simple_trainer.py"),
+]
+
+
+@pytest.mark.parametrize(("script", "fixture", "name"), SCRIPT_TARGETS, ids=[s for s, _, _ in SCRIPT_TARGETS])
+def test_scripts_run_without_site_packages(script: str, fixture: str, name: str, tmp_path: Path) -> None:
+    """``python -S -I``: no site-packages (no torch, no numpy), no PYTHONPATH, no user site."""
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    target = checkout / name
+    target.write_bytes((TRAINERS / fixture).read_bytes())
+    original = target.read_bytes()
+    command = [sys.executable, "-S", "-I", str(ROOT / "adapters" / script / "patch.py"), str(checkout)]
+    done = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert target.read_text().count(MARKER) in (3, 4)
+    done = subprocess.run([*command, "--revert"], capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert target.read_bytes() == original
+    probe = "import sys, runpy; runpy.run_path(sys.argv[1]); print(sorted(m for m in ('torch', 'numpy', 'polargs_plugin') if m in sys.modules))"
+    done = subprocess.run([sys.executable, "-S", "-I", "-c", probe, str(ROOT / "adapters" / script / "patch.py")],
+                          capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 0 and done.stdout.strip() == "[]", done.stderr

@@ -1,18 +1,22 @@
 """Insert the PolarGS hook calls into autonomousvision/gaussian-opacity-fields' (GOF) ``train.py``.
 
-    python adapters/gof/patch.py CHECKOUT [--dry-run] [--revert [--force]]
+    python adapters/gof/patch.py CHECKOUT [--dry-run] [--revert] [--force]
 
 Verified against GOF 5245b20. GOF's render() needs ``kernel_size``: it is taken from the training
 render call and handed to ``attach``. The adapter's densify hook recomputes GOF's 3D filter itself.
-What goes where: docs/adapters/patching.md.
+mip-splatting's loop, whose render call also passes ``subpixel_offset``, is refused.
+What goes where: docs/adapters/patching.md. Needs only the standard library (Python 3.8+).
 """
 
+import runpy
 import sys
+from pathlib import Path
 
-from polargs_plugin.kit.inria_anchors import inria_anchors
-from polargs_plugin.kit.patching import main
+engine = runpy.run_path(str(Path(__file__).resolve().parents[1] / "patch_engine.py"))  # standard library only
+anchors = engine["load"]("inria_anchors")
+main = engine["load"]("patching").main
 
-ANCHORS = inria_anchors(
+ANCHORS = anchors.inria_anchors(
     "gof",
     render_tail=(
         r"\s*,\s*(?:kernel_size\s*=\s*)?(?P<kernel_size>[\w.]+)"
@@ -20,6 +24,7 @@ ANCHORS = inria_anchors(
     ),
     render_tail_looks_for=", kernel_size=<...>",
     attach_extra=", kernel_size={kernel_size}",
+    checks=(anchors.render_keyword("subpixel_offset", anchors.MIP_SPLATTING),),
 )
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ Parameter names follow gsplat's ``simple_trainer.py``: ``means`` [N, 3], ``scale
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from typing import Any, Callable, Mapping
 
@@ -41,6 +42,7 @@ __all__ = [
     "NUM_AUX",
     "RAW_FROM_GSPLAT",
     "gaussian_state",
+    "gsplat_sh",
     "sh_colors",
     "polar_colors",
     "polar_backgrounds",
@@ -78,18 +80,48 @@ def _viewmat(viewmats: Tensor) -> Tensor:
     return viewmats
 
 
-def sh_colors(params: Mapping[str, Tensor], viewmats: Tensor, sh_degree: int | None = None) -> Tensor:
+def gsplat_sh(degree: int, means: Tensor, viewmats: Tensor, coeffs: Tensor, sh_fn: Callable[..., Tensor]) -> Tensor:
+    """(N, D) SH values (no offset, no clamp) of one camera through ``gsplat.spherical_harmonics``,
+    whichever of its two signatures ``sh_fn`` has (read from the function, not from a version):
+
+    - gsplat 1.5: ``(degrees_to_use, dirs, coeffs, masks=None) -> [N, D]``, dirs = mean - camera centre;
+    - gsplat main (1.6): ``(degrees_to_use, means, viewmats, coeffs, ...) -> [C, N, D]``, the
+      camera centre taken from each view matrix.
+
+    Raises:
+        TypeError: ``sh_fn`` has neither signature (the message shows the one it has).
+    """
+    parameters = inspect.signature(sh_fn).parameters
+    w2c = _viewmat(viewmats).to(means)
+    if "viewmats" in parameters and "means" in parameters:
+        return sh_fn(degree, means, w2c[None], coeffs)[0]
+    if "dirs" in parameters:
+        camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
+        return sh_fn(degree, means - camera_center, coeffs)
+    raise TypeError(
+        f"spherical_harmonics{inspect.signature(sh_fn)}: expected gsplat 1.5's (degrees_to_use, dirs, coeffs, ...) "
+        "or gsplat 1.6's (degrees_to_use, means, viewmats, coeffs, ...)"
+    )
+
+
+def sh_colors(
+    params: Mapping[str, Tensor],
+    viewmats: Tensor,
+    sh_degree: int | None = None,
+    sh_fn: Callable[..., Tensor] | None = None,
+) -> Tensor:
     """Per-Gaussian RGB of the SH parameters for one camera, as gsplat's ``rasterization``
     computes them internally (``clamp_min(SH(dir) + 0.5, 0)``, dir = mean - camera centre).
 
-    Needed because the extra PolarGS channels only fit with ``sh_degree=None``. On CUDA this is
-    ``gsplat.spherical_harmonics``; on CPU (gsplat's is CUDA-only)
-    :func:`polargs_plugin.geometry.eval_sh`, the same real SH basis (3DGS convention).
+    Needed because the extra PolarGS channels only fit with ``sh_degree=None``.
 
     Args:
         params: gsplat parameters with ``means``, ``sh0`` and (optionally) ``shN``.
         viewmats: (1, 4, 4) or (4, 4) world-to-camera.
         sh_degree: active SH degree (default: all bands of ``sh0`` + ``shN``).
+        sh_fn: a function with the signature of ``gsplat.spherical_harmonics``, either gsplat's
+            (:func:`gsplat_sh`). Default: gsplat's own on CUDA; on CPU, where gsplat's is not
+            available, :func:`polargs_plugin.geometry.eval_sh` (the same real SH basis).
 
     Returns:
         (N, 3) colours, differentiable w.r.t. the SH coefficients (and means for degree >= 1).
@@ -101,14 +133,14 @@ def sh_colors(params: Mapping[str, Tensor], viewmats: Tensor, sh_degree: int | N
     degree = full if sh_degree is None else int(sh_degree)
     if not 0 <= degree <= full:
         raise ValueError(f"sh_degree {degree} outside 0..{full} (K = {coeffs.shape[1]} coefficients)")
-    w2c = _viewmat(viewmats).to(params["means"])
+    means = params["means"]
+    if sh_fn is None and coeffs.is_cuda:
+        from gsplat import spherical_harmonics as sh_fn
+    if sh_fn is not None:
+        return torch.clamp_min(gsplat_sh(degree, means, viewmats, coeffs, sh_fn) + 0.5, 0.0)
+    w2c = _viewmat(viewmats).to(means)
     camera_center = -w2c[:3, :3].T @ w2c[:3, 3]
-    dirs = params["means"] - camera_center
-    if coeffs.is_cuda:
-        from gsplat import spherical_harmonics
-
-        return torch.clamp_min(spherical_harmonics(degree, dirs, coeffs) + 0.5, 0.0)
-    return eval_sh(coeffs[:, : (degree + 1) ** 2], dirs)
+    return eval_sh(coeffs[:, : (degree + 1) ** 2], means - camera_center)
 
 
 def polar_colors(colors: Tensor, params: Mapping[str, Tensor], viewmats: Tensor) -> Tensor:

@@ -1,19 +1,22 @@
 """Insert the PolarGS hook calls into zju3dv/PGSR's ``train.py``.
 
-    python adapters/pgsr/patch.py CHECKOUT [--dry-run] [--revert [--force]]
+    python adapters/pgsr/patch.py CHECKOUT [--dry-run] [--revert] [--force]
 
 Verified against PGSR de24f1a. PGSR's render() takes the exposure ``app_model``: its name is taken
 from the training render call (which spans two lines upstream) and handed to ``attach``. The
 densify hook goes after the optimizer steps, i.e. after the same-iteration multi-view trim.
-What goes where: docs/adapters/patching.md.
+What goes where: docs/adapters/patching.md. Needs only the standard library (Python 3.8+).
 """
 
+import runpy
 import sys
+from pathlib import Path
 
-from polargs_plugin.kit.inria_anchors import inria_anchors
-from polargs_plugin.kit.patching import main
+engine = runpy.run_path(str(Path(__file__).resolve().parents[1] / "patch_engine.py"))  # standard library only
+anchors = engine["load"]("inria_anchors")
+main = engine["load"]("patching").main
 
-ANCHORS = inria_anchors(
+ANCHORS = anchors.inria_anchors(
     "pgsr",
     render_tail=r"\s*,(?:.*?,)?\s*app_model\s*=\s*(?P<app_model>\w+)\s*(?:,.*)?\)$",
     render_tail_looks_for=", ..., app_model=<app_model>, ...",

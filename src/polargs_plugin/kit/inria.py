@@ -21,6 +21,7 @@ environment (``POLARGS_DATA``, ``POLARGS_PRESET``, ``POLARGS_CONFIG``, ``POLARGS
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Mapping, Sequence
 
@@ -35,7 +36,7 @@ from polargs_plugin.kit.append import pad_rows, raw_from_new
 from polargs_plugin.kit.cameras import view_from_graphdeco
 from polargs_plugin.types import GaussianState, NewGaussians, RenderOut, View
 
-__all__ = ["match_views", "InriaAdapter"]
+__all__ = ["match_views", "polar_data_by_name", "InriaAdapter"]
 
 
 def _resized(image: Tensor, height: int, width: int, mode: str) -> Tensor:
@@ -53,35 +54,62 @@ def _resized(image: Tensor, height: int, width: int, mode: str) -> Tensor:
     return out.reshape(*lead, height, width).to(image.dtype)
 
 
+def polar_data_by_name(
+    images: Sequence[tuple[str, int, int]], polar_views: Sequence[View], source: str = ""
+) -> dict[str, View]:
+    """The polarimetric view of each of a trainer's images, at that image's resolution.
+
+    Args:
+        images: ``(name, height, width)`` of each trainer image.
+        polar_views: the dataset's views; an image takes the view of its name, or of its file
+            stem. Stokes are resampled when the trainer loaded its images at another size (area
+            average, Stokes being linear), masks by nearest neighbour.
+        source: the dataset folder, for messages.
+
+    Returns:
+        ``name -> View`` with the dataset's camera and the resampled Stokes and mask (the
+        caller puts the trainer's camera in).
+
+    Raises:
+        PolarInputError: an image has no polarimetric view of its name (the message lists a few
+            names from each side).
+    """
+    by_name = {view.name: view for view in polar_views}
+    by_name.update({Path(view.name).stem: view for view in polar_views if Path(view.name).stem not in by_name})
+    missing = [name for name, _, _ in images if name not in by_name and Path(name).stem not in by_name]
+    if missing:
+        raise PolarInputError(
+            source or "polarimetric dataset",
+            f"no view for {len(missing)} of the trainer's {len(images)} images (e.g. {missing[:3]}); "
+            f"the dataset has {len(by_name)} views named e.g. {sorted(by_name)[:3]}",
+        )
+    out = {}
+    for name, height, width in images:
+        data = by_name.get(name) or by_name[Path(name).stem]
+        stokes = _resized(data.stokes, height, width, "area")
+        mask = None if data.mask is None else _resized(data.mask, height, width, "nearest").bool()
+        out[name] = replace(data, stokes=stokes, mask=mask)
+    return out
+
+
 def match_views(cameras: Sequence[Any], polar_views: Sequence[View], source: str = "") -> dict[str, View]:
     """One :class:`View` per trainer camera: its geometry, the polarimetric data of the same name.
 
     The trainer's cameras are the geometry that is rendered, so they define K and the pose; the
     dataset's view of the same name (``camera.image_name``, or the dataset view's file stem)
-    gives the Stokes and mask, resampled to the camera's resolution when the trainer loaded its
-    images downscaled (area average for Stokes, nearest for masks).
+    gives the Stokes and mask (:func:`polar_data_by_name`).
 
     Raises:
-        PolarInputError: a camera has no polarimetric view of its name (the message lists a few
-            names from each side).
+        PolarInputError: a camera has no polarimetric view of its name.
     """
-    by_name = {view.name: view for view in polar_views}
-    by_name.update({Path(view.name).stem: view for view in polar_views if Path(view.name).stem not in by_name})
-    missing = [cam.image_name for cam in cameras if cam.image_name not in by_name and Path(cam.image_name).stem not in by_name]
-    if missing:
-        raise PolarInputError(
-            source or "polarimetric dataset",
-            f"no view for {len(missing)} of the trainer's {len(cameras)} images (e.g. {missing[:3]}); "
-            f"the dataset has {len(by_name)} views named e.g. {sorted(by_name)[:3]}",
+    images = [(cam.image_name, int(cam.image_height), int(cam.image_width)) for cam in cameras]
+    data = polar_data_by_name(images, polar_views, source)
+    return {
+        cam.image_name: view_from_graphdeco(
+            cam, data[cam.image_name].stokes, mask=data[cam.image_name].mask, source=data[cam.image_name].source
         )
-    views = {}
-    for cam in cameras:
-        data = by_name.get(cam.image_name) or by_name[Path(cam.image_name).stem]
-        height, width = int(cam.image_height), int(cam.image_width)
-        stokes = _resized(data.stokes, height, width, "area")
-        mask = None if data.mask is None else _resized(data.mask, height, width, "nearest").bool()
-        views[cam.image_name] = view_from_graphdeco(cam, stokes, mask=mask, source=data.source)
-    return views
+        for cam in cameras
+    }
 
 
 class InriaAdapter:

@@ -15,15 +15,24 @@ How a file is patched:
    values captured by earlier anchors (inserted with :func:`re.escape`); its named groups add to a
    single dict of captured names shared by all anchors (a name captured twice must agree). Scope
    fields (``after``, ``before``, ``inside``, ``same_indent_as``) restrict the candidates using
-   anchors found earlier. An anchor must match exactly once (``pick='only'``) or the last
-   candidate is taken (``pick='last'``).
+   anchors found earlier. An anchor must match exactly once (``pick='only'``), or the first or
+   last candidate is taken (``pick='first'`` / ``'last'``). An anchor with ``refuse`` set is a
+   shape the script knows it cannot handle: if it matches, nothing is written and the reason is
+   the error.
 4. Each anchor's template lines are filled from the shared dict (so a line inserted before the
    training loop can use names captured from the render call further down), indented like the
    anchor line, suffixed with ``  # polargs-patch`` and inserted before its first physical line or
    after its last one.
-5. The result must still compile (when the base did); then it is written atomically (temporary
-   file in the same folder + :func:`os.replace`), keeping the file mode, after the base has been
-   saved as ``<file>.polargs-orig``.
+5. The result must still compile (when the base did), and every name an inserted line reads must
+   be bound where that line runs (:func:`unbound_reads`): a keyword copied from the render call
+   inside the loop to a line above it would otherwise fail at run time. Then it is written
+   atomically (temporary file in the same folder + :func:`os.replace`), keeping the file mode,
+   after the base has been saved as ``<file>.polargs-orig``. A read-only file is refused unless
+   ``--force``.
+
+Only the standard library is imported (here and in :mod:`.inria_anchors`), so that a patch script
+runs with any Python 3.8+ before the trainer's environment is complete
+(``adapters/patch_engine.py`` loads these two modules without importing the package).
 
 Errors that mean "this is not the loop we know" (an anchor missing or ambiguous, inconsistent
 captures) leave every file untouched, print one line
@@ -34,10 +43,13 @@ and give exit status 2.
 from __future__ import annotations
 
 import argparse
+import ast
+import builtins
 import difflib
 import io
 import os
 import re
+import stat
 import sys
 import tempfile
 import tokenize
@@ -82,8 +94,8 @@ class Anchor:
     (``"the `loss.backward()` call inside the training loop"``)."""
 
     pick: str = "only"
-    """``'only'``: exactly one candidate must match; ``'last'``: take the last of several
-    (e.g. the last top-level import)."""
+    """``'only'``: exactly one candidate must match; ``'first'`` / ``'last'``: take the first /
+    last of several (the last top-level import; the first ``no_grad`` block after the backward)."""
 
     after: str | None = None
     """Name of an earlier anchor: only statements below it are candidates."""
@@ -101,11 +113,17 @@ class Anchor:
     defaults: Mapping[str, str] = field(default_factory=dict)
     """Values for named groups that did not take part in the match (optional groups)."""
 
+    refuse: str = ""
+    """Non-empty: the anchor describes a shape the script refuses, and this is why (one line). A
+    match stops the patch with ``error: <file>: <refuse> (L<n>)``; no match is not an error."""
+
     def __post_init__(self) -> None:
         if self.where not in ("before", "after"):
             raise ValueError(f"anchor {self.name!r}: where must be 'before' or 'after', not {self.where!r}")
-        if self.pick not in ("only", "last"):
-            raise ValueError(f"anchor {self.name!r}: pick must be 'only' or 'last', not {self.pick!r}")
+        if self.pick not in ("only", "first", "last"):
+            raise ValueError(f"anchor {self.name!r}: pick must be 'only', 'first' or 'last', not {self.pick!r}")
+        if self.refuse and self.lines:
+            raise ValueError(f"anchor {self.name!r}: a refusing anchor inserts nothing")
         for line in self.lines:
             if "\n" in line or "\r" in line or MARKER in line:
                 raise ValueError(f"anchor {self.name!r}: template lines are single lines without the marker")
@@ -282,13 +300,17 @@ def _in_scope(stmt: LogicalLine, anchor: Anchor, found: Mapping[str, Found], sta
 
 def _check_references(anchors: Sequence[Anchor]) -> None:
     seen: set[str] = set()
+    locating: set[str] = set()  # refusing anchors locate nothing, so nothing can refer to them
     for anchor in anchors:
         for ref in (anchor.after, anchor.before, anchor.inside, anchor.same_indent_as):
-            if ref is not None and ref not in seen:
-                raise ValueError(f"anchor {anchor.name!r} refers to {ref!r}, which is not an earlier anchor")
+            if ref is not None and ref not in locating:
+                why = "a refusing anchor, which locates nothing" if ref in seen else "not an earlier anchor"
+                raise ValueError(f"anchor {anchor.name!r} refers to {ref!r}, which is {why}")
         if anchor.name in seen:
             raise ValueError(f"two anchors are named {anchor.name!r}")
         seen.add(anchor.name)
+        if not anchor.refuse:
+            locating.add(anchor.name)
 
 
 def _describe(anchor: Anchor) -> str:
@@ -305,6 +327,10 @@ def locate(
     for anchor in anchors:
         pattern = re.compile(expand_regex(anchor, captured))
         hits = [(s, m) for s in statements if _in_scope(s, anchor, found, statements) and (m := pattern.match(s.text))]
+        if anchor.refuse:
+            if hits:
+                raise PatchError(f"{filename}: {anchor.refuse} (L{hits[0][0].first + 1})")
+            continue
         if not hits:
             raise PatchError(f"{filename}: anchor '{anchor.name}' not found{_describe(anchor)}")
         if len(hits) > 1 and anchor.pick == "only":
@@ -312,7 +338,7 @@ def locate(
             raise PatchError(
                 f"{filename}: anchor '{anchor.name}' matches {len(hits)} lines ({where}){_describe(anchor)}"
             )
-        stmt, match = hits[-1]
+        stmt, match = hits[0] if anchor.pick == "first" else hits[-1]
         _merge_captures(anchor, match, captured, filename)
         found[anchor.name] = Found(anchor=anchor, line=stmt)
     return found, captured
@@ -387,9 +413,130 @@ def patched_text(current: str, anchors: Sequence[Anchor], filename: str) -> str:
     """What the file should read once patched, from its current (possibly patched) text."""
     base = strip_marked(current)
     new = apply_anchors(base, anchors, filename)
-    if _compiles(base, filename) is None and (problem := _compiles(new, filename)) is not None:
+    if _compiles(base, filename) is not None:
+        return new  # not Python we can parse: the anchors alone decide
+    if (problem := _compiles(new, filename)) is not None:
         raise PatchError(f"{filename}: the patched file would not compile ({problem}); nothing written")
+    inserted = [i + 1 for i, line in enumerate(new.splitlines()) if is_marked(line)]
+
+    def base_line(line: int) -> int:  # a line of the patched text -> the un-patched file's line
+        return line - sum(1 for marked in inserted if marked < line)
+
+    for line, name, bound_at in unbound_reads(new, inserted):
+        where = f"first bound at L{base_line(bound_at)}, below it" if bound_at else "not bound in its scope"
+        raise PatchError(
+            f"{filename}: the line to insert above L{base_line(line)} would read '{name}' before it is bound"
+            f" ({where}); nothing written"
+        )
     return new
+
+
+# ----------------------------------------------------------------------------------------------
+# names an inserted line reads
+
+
+_SCOPES = (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef, ast.Lambda)
+_COMPREHENSIONS = (ast.ListComp, ast.SetComp, ast.DictComp, ast.GeneratorExp)
+
+
+def _local_nodes(node: ast.AST) -> list[ast.AST]:
+    """The nodes of ``node``'s own scope: nested functions, classes, lambdas and comprehensions are
+    not entered (their names, and the defaults and decorators of a def, belong to ``node``'s scope)."""
+    out: list[ast.AST] = []
+    stack = list(ast.iter_child_nodes(node))
+    while stack:
+        child = stack.pop()
+        out.append(child)
+        if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            stack.extend([*child.decorator_list, *child.args.defaults, *child.args.kw_defaults])
+        elif isinstance(child, ast.ClassDef):
+            stack.extend([*child.decorator_list, *child.bases])
+        elif not isinstance(child, (ast.Lambda, *_COMPREHENSIONS)):
+            stack.extend(ast.iter_child_nodes(child))
+    return [n for n in out if n is not None]
+
+
+def _bindings(scope: ast.AST) -> dict[str, int]:
+    """Name -> first line where ``scope`` binds it (parameters: the ``def`` line)."""
+    first: dict[str, int] = {}
+
+    def bind(name: str, line: int) -> None:
+        if name not in first or line < first[name]:
+            first[name] = line
+
+    if isinstance(scope, (ast.FunctionDef, ast.AsyncFunctionDef)):
+        args = scope.args
+        for arg in [*getattr(args, "posonlyargs", []), *args.args, *args.kwonlyargs, args.vararg, args.kwarg]:
+            if arg is not None:
+                bind(arg.arg, scope.lineno)
+    for node in _local_nodes(scope):
+        if isinstance(node, ast.Name) and isinstance(node.ctx, (ast.Store, ast.Del)):
+            bind(node.id, node.lineno)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            for alias in node.names:
+                bind(alias.asname or alias.name.split(".")[0], node.lineno)
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            bind(node.name, node.lineno)
+        elif isinstance(node, ast.ExceptHandler) and node.name:
+            bind(node.name, node.lineno)
+        elif isinstance(node, (ast.Global, ast.Nonlocal)):
+            for name in node.names:
+                bind(name, 0)  # bound elsewhere: not this check's business
+    return first
+
+
+def _scopes_of_lines(tree: ast.Module, lines: set[int]) -> dict[int, tuple[ast.stmt, list[ast.AST]]]:
+    """Line -> (the statement starting there, its enclosing scopes from the module inwards)."""
+    found: dict[int, tuple[ast.stmt, list[ast.AST]]] = {}
+    stack: list[tuple[ast.AST, list[ast.AST]]] = [(tree, [tree])]
+    while stack:
+        node, scopes = stack.pop()
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.stmt) and child.lineno in lines and child.lineno not in found:
+                found[child.lineno] = (child, scopes)
+            if isinstance(child, _SCOPES):
+                stack.append((child, [*scopes, child]))
+            else:
+                stack.append((child, scopes))
+    return found
+
+
+def _reads(statement: ast.stmt) -> list[tuple[str, int]]:
+    """(name, line) of the names a statement loads, outside the comprehensions and lambdas in it."""
+    return [
+        (node.id, node.lineno)
+        for node in [statement, *_local_nodes(statement)]
+        if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Load)
+    ]
+
+
+def unbound_reads(text: str, lines: Sequence[int]) -> list[tuple[int, str, int]]:
+    """Names that the statements starting on ``lines`` (1-based) read before their scope binds them.
+
+    A name counts as bound for a statement when its own function binds it on an earlier line
+    (parameters included), an enclosing function or the module binds it anywhere (they have run
+    by the time the function is called; at module level: on an earlier line), or it is a builtin.
+    Conditional bindings count as bindings: the check catches names that are assigned only
+    further down (inside the training loop, say), not every possible NameError.
+
+    Returns:
+        ``(line, name, line of its first binding in that scope or 0)`` per unbound read.
+    """
+    tree = ast.parse(text)
+    builtin_names = set(dir(builtins))
+    scope_bindings: dict[int, dict[str, int]] = {}
+    problems = []
+    for line, (statement, scopes) in sorted(_scopes_of_lines(tree, set(lines)).items()):
+        own = scopes[-1]
+        for scope in scopes:
+            scope_bindings.setdefault(id(scope), _bindings(scope))
+        outer = set().union(*(scope_bindings[id(s)] for s in scopes[:-1])) if len(scopes) > 1 else set()
+        mine = scope_bindings[id(own)]
+        for name, _ in _reads(statement):
+            if name in builtin_names or name in outer or (name in mine and mine[name] < line):
+                continue
+            problems.append((line, name, mine.get(name, 0)))
+    return problems
 
 
 # ----------------------------------------------------------------------------------------------
@@ -444,15 +591,33 @@ def resolve_target(target: str | os.PathLike[str], filename: str = "train.py") -
     return path
 
 
-def patch_file(path: Path, anchors: Sequence[Anchor], dry_run: bool = False) -> str:
+def is_read_only(path: Path) -> bool:
+    """Whether ``path`` is read-only: no write permission bit at all, or not writable by us.
+
+    The bits are looked at too because the superuser may write to any file: a mode of 0444
+    still says the owner wants the file left alone."""
+    return not path.stat().st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH) or not os.access(path, os.W_OK)
+
+
+def _refuse_read_only(path: Path, force: bool, action: str) -> None:
+    if is_read_only(path) and not force:
+        mode = stat.S_IMODE(path.stat().st_mode)
+        raise PatchError(f"{path}: read-only (mode {mode:04o}); --force {action} it anyway, keeping the mode")
+
+
+def patch_file(path: Path, anchors: Sequence[Anchor], dry_run: bool = False, force: bool = False) -> str:
     """Patch one file (or, with ``dry_run``, return the diff and write nothing); returns the report.
 
     The backup always holds the file's current un-patched text: written on the first patch, and
-    refreshed when the file changed under it (an upstream update patched again, say)."""
+    refreshed when the file changed under it (an upstream update patched again, say). A read-only
+    file is refused unless ``force`` (the file is replaced by a rename, which its mode does not
+    prevent, so the mode is the only sign that it should stay as it is)."""
     current = decode(path.read_bytes())
     new = patched_text(current, anchors, str(path))
     if dry_run:
         return unified_diff(current, new, path)
+    if new != current:
+        _refuse_read_only(path, force, "patches")
     mode = path.stat().st_mode & 0o7777
     note = _ensure_backup(path, encode(strip_marked(current)), mode)
     if new == current:
@@ -476,7 +641,7 @@ def revert_file(path: Path, dry_run: bool = False, force: bool = False) -> str:
     """Restore the file from its backup (byte-identical) and delete the backup; returns the report.
 
     Without a backup the marked lines are removed instead. Refuses when the file was edited
-    since patching (its un-patched text differs from the backup) unless ``force``."""
+    since patching (its un-patched text differs from the backup) or is read-only, unless ``force``."""
     current_bytes = path.read_bytes()
     current = decode(current_bytes)
     backup = backup_path(path)
@@ -489,6 +654,7 @@ def revert_file(path: Path, dry_run: bool = False, force: bool = False) -> str:
             )
         if dry_run:
             return unified_diff(current, decode(original), path)
+        _refuse_read_only(path, force, "reverts")
         write_atomic(path, original, path.stat().st_mode & 0o7777)
         backup.unlink()
         return f"{path}: restored from {backup.name}, backup removed"
@@ -497,6 +663,7 @@ def revert_file(path: Path, dry_run: bool = False, force: bool = False) -> str:
         return "" if dry_run else f"{path}: not patched (no backup, no marked lines), nothing to revert"
     if dry_run:
         return unified_diff(current, stripped, path)
+    _refuse_read_only(path, force, "reverts")
     write_atomic(path, encode(stripped), path.stat().st_mode & 0o7777)
     return f"{path}: no backup found; removed the lines marked '{MARKER}'"
 
@@ -505,30 +672,33 @@ def revert_file(path: Path, dry_run: bool = False, force: bool = False) -> str:
 # command line
 
 
-def build_parser(description: str) -> argparse.ArgumentParser:
-    """The command line every ``adapters/<name>/patch.py`` shares."""
+def build_parser(description: str, filename: str = "train.py") -> argparse.ArgumentParser:
+    """The command line every ``adapters/<name>/patch.py`` shares (``filename``: the file patched
+    in a checkout folder by default)."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkout", help="the trainer's checkout (folder holding train.py) or the file itself")
-    parser.add_argument("--file", default="train.py", help="file to patch inside the checkout (default: train.py)")
+    parser.add_argument("checkout", help=f"the trainer's checkout (folder holding {filename}) or the file itself")
+    parser.add_argument("--file", default=filename, help=f"file to patch inside the checkout (default: {filename})")
     parser.add_argument("--dry-run", action="store_true", help="print the unified diff, write nothing")
     parser.add_argument(
         "--revert", action="store_true", help=f"restore the file from <file>{BACKUP_SUFFIX} and remove the backup"
     )
     parser.add_argument(
-        "--force", action="store_true", help="with --revert: restore even if the file was edited after patching"
+        "--force",
+        action="store_true",
+        help="patch (or revert) a read-only file; with --revert: restore even if the file was edited after patching",
     )
     return parser
 
 
-def main(argv: Sequence[str] | None, anchors: Sequence[Anchor], description: str = "") -> int:
+def main(argv: Sequence[str] | None, anchors: Sequence[Anchor], description: str = "", filename: str = "train.py") -> int:
     """Entry point of a patch script: parse ``argv``, patch / dry-run / revert, return the exit status."""
-    args = build_parser(description).parse_args(argv)
+    args = build_parser(description, filename).parse_args(argv)
     try:
         path = resolve_target(args.checkout, args.file)
         if args.revert:
             report = revert_file(path, dry_run=args.dry_run, force=args.force)
         else:
-            report = patch_file(path, anchors, dry_run=args.dry_run)
+            report = patch_file(path, anchors, dry_run=args.dry_run, force=args.force)
     except PatchError as err:
         print(f"error: {err}", file=sys.stderr)
         return err.status
