@@ -729,3 +729,16 @@ def test_an_ablation_run_records_its_run_folder_not_the_folder_it_was_built_in(t
     assert metrics["target"] == str(run_dir) and metrics["mesh"] == str(run_dir / "tsdf_mesh.ply")
     assert json.loads((run_dir / "tsdf_mesh.json").read_text())["run_dir"] == str(run_dir)
     assert not [path.name for path in run_dir.glob("*.json") if ".tmp-" in path.read_text()]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a second device (CUDA)")
+def test_loss_door_takes_a_render_on_the_gpu_of_cpu_views_but_not_mixed_devices():
+    hooks, view, render, gaussians = _loss_door()
+    on_gpu = dataclasses.replace(render, **{name: getattr(render, name).detach().cuda()
+                                            for name in ("color", "depth", "normal", "alpha")})
+    extra, _ = hooks.loss(5, view, on_gpu, dataclasses.replace(gaussians, scales=gaussians.scales.detach().cuda()))
+    assert extra.device.type == "cuda"
+    with pytest.raises(ValueError) as err:
+        hooks.loss(5, view, on_gpu, gaussians)
+    assert str(err.value) == ("hooks.loss: gaussians.scales is on cpu but render.color on cuda:0; give every tensor "
+                              "on one device")
