@@ -1,7 +1,9 @@
 """Faults a real user meets on the command line: raw-mosaic folders read with the wrong
-pattern, SfM with too few views, reader options on the wrong format, file modes, a slow --help.
-Every error is one line ``error: FILE: problem`` naming the file or argument, with nothing
-half-written."""
+pattern, SfM with too few views, reader options on the wrong format, file modes, a slow --help,
+and the table ``CLI_FAULTS`` (bit depths that lie, settings out of range, dot-named scenes, files
+that are no checkpoint, other data under a run's view names), a full disk, SIGTERM to a grid.
+Every error is one line ``error: FILE: problem`` naming the file or argument, with exit status 2
+and nothing half-written."""
 
 from __future__ import annotations
 

@@ -1,5 +1,9 @@
-"""Faults real runs meet, at the PolarHooks door: each case's message names the
-file, argument or view, and nothing NaN remains."""
+"""Faults real runs meet, in the library: at the PolarHooks door (NaN, shapes, dtypes, devices, a
+view without Stokes), in the readers (bit depths that lie, views far brighter or darker than the
+others), in run folders (full disks, killed writers, stale locks taken over at once, other data
+under the same names, relative paths) and in the ablation runner (dot-named scenes, the temporary
+folder a run is built in). Each message names the file, argument or view, in one line; nothing is
+half-written and no run that can resume is lost. The tables (``*_FAULTS``) list the cases."""
 
 from __future__ import annotations
 
