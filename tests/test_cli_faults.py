@@ -351,21 +351,21 @@ def test_mesh_from_another_folder_reads_the_data_the_run_was_trained_on(tmp_path
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table from /proc")
 def test_ablate_stopped_by_sigterm_says_so_and_ends_its_pool_cleanly(tmp_path):
-    """SIGTERM to `polargs ablate` (a scheduler's timeout, `kill`): its workers stop their cells
-    (keeping their periodic checkpoints), the pool ends without leaked semaphores, and the command
-    ends with one line and exit status 143."""
+    """SIGTERM to `polargs ablate` (a scheduler's timeout, `kill`): its workers stop their cells as
+    Ctrl-C does (each keeps its partial folder, with the attempt's log), the pool ends without
+    leaked semaphores, and the command ends with one line and exit status 143."""
     import signal
     import time
 
     out = tmp_path / "grid"
     args = ["ablate", "--scenes", "glossy_plane_sphere", "--variants", "base,reg", "--out", str(out), "--views", "4",
-            "--size", "24x24", "--train-set", "iterations=100000", "--checkpoint-every", "20", "--jobs", "2", "--quiet"]
+            "--size", "24x24", "--train-set", "iterations=100000", "--jobs", "2", "--quiet"]
     proc = subprocess.Popen([sys.executable, "-m", "polargs_plugin.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
     try:
         deadline = time.monotonic() + 180
-        while len(list(out.glob(".partial/*/checkpoint.pt"))) < 2 and time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.5)  # both cells training, past their first periodic checkpoint
+        while len(list(out.glob(".tmp-*"))) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)  # both cells under way
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
     finally:
@@ -375,4 +375,6 @@ def test_ablate_stopped_by_sigterm_says_so_and_ends_its_pool_cleanly(tmp_path):
     assert err.splitlines()[-1] == (f"interrupted (SIGTERM): 0 of 2 runs finished; runs under way keep their last "
                                     f"periodic checkpoint in {out}/.partial; the same command continues them")
     assert "leaked semaphore" not in err and "Traceback" not in err
-    assert len(list(out.glob(".partial/*/checkpoint.pt"))) == 2 and not list(out.glob(".tmp-*"))
+    logs = list(out.glob(".partial/*/attempts.log"))
+    assert len(logs) == 2 and all("\nINTERRUPTED (" in log.read_text() for log in logs)  # not FAILED
+    assert not list(out.glob(".tmp-*")) and not list(out.glob("logs/*.log"))  # no failure recorded

@@ -182,12 +182,14 @@ def partial_dir(cell: Cell) -> Path:
 _INTERRUPTED = False
 
 
-def mark_interrupted() -> None:
-    """Called by a job's preemption / timeout handler (submitit's ``checkpoint``) before it exits:
-    the ``SystemExit`` that follows is an interruption (the partial checkpoint is kept and the
-    exception passes through unchanged), not a failure."""
+def mark_interrupted(interrupted: bool = True) -> None:
+    """Called by a job's preemption / timeout handler (submitit's ``checkpoint``) before it exits,
+    or by a pool worker's signal handler: the ``SystemExit`` that follows, or whatever the
+    interruption turns into (an import it breaks fails with ImportError), is an interruption (the
+    partial checkpoint is kept and the exception passes through unchanged), not a failure.
+    ``interrupted=False`` clears the mark (a pool worker before its next cell)."""
     global _INTERRUPTED
-    _INTERRUPTED = True
+    _INTERRUPTED = interrupted
 
 
 def _is_interruption(err: BaseException) -> bool:
@@ -541,6 +543,8 @@ def _recording_trainer_class() -> type:
             return super().save_checkpoint(path)
 
         def step(self) -> dict[str, float]:
+            if _INTERRUPTED:  # an interruption that a library swallowed on the way (an `except ImportError`)
+                raise KeyboardInterrupt
             logs = super().step()
             self.curve.append({
                 "iteration": self.iteration,

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
-from polargs_plugin.ablation.cell import INITS, Cell, CellFailed, is_done, run_cell
+from polargs_plugin.ablation.cell import INITS, Cell, CellFailed, is_done, mark_interrupted, run_cell
 from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, parse_scene
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.data import ReaderOptions
@@ -318,6 +318,7 @@ def _interrupt_cell(signum: int, frame: Any) -> None:
     otherwise break the pool's loop, or the cell's own clean-up of the interruption."""
     if _IN_CELL.is_set() and not _INTERRUPTED.is_set():
         _INTERRUPTED.set()
+        mark_interrupted()  # what the KeyboardInterrupt may turn into still ends the cell as interrupted
         raise KeyboardInterrupt
 
 
@@ -369,12 +370,14 @@ def _worker(cell_data: dict) -> dict:
         if phase != "train" or done % step == 0 or done == total:
             _QUEUE.put((cell.name, phase, done, total))
 
-    if _STOP is not None and _STOP.is_set():
-        raise KeyboardInterrupt  # the grid was interrupted: a cell queued meanwhile does not start
-    _IN_CELL.set()
+    _INTERRUPTED.clear()
+    mark_interrupted(False)
+    _IN_CELL.set()  # before the check: a stop signalled from here on interrupts the cell
     try:
+        if _STOP is not None and _STOP.is_set():
+            raise KeyboardInterrupt  # the grid was interrupted: a cell queued meanwhile does not start
         return run_cell(cell, progress=report)
-    except KeyboardInterrupt:
+    except BaseException:
         if _ORPHANED.is_set():  # the grid is gone: nobody to report to, and exiting normally would
             os._exit(130)  # wait for the pool's feeder threads on pipes nobody reads
         raise
@@ -483,11 +486,12 @@ def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridRe
     reader.start()
     stop = context.Event()
     try:
+        futures: dict = {}
         with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
-                                    initargs=(queue, threads, gpu_queue, os.getpid(), stop)) as pool:
-            futures = {pool.submit(_worker, cell.to_dict()): cell for cell in pending}
-            with _stopping_on_interrupt(stop, futures):
-                _collect(futures, bar, result)
+                                    initargs=(queue, threads, gpu_queue, os.getpid(), stop)) as pool, \
+                _stopping_on_interrupt(stop, futures):
+            futures.update({pool.submit(_worker, cell.to_dict()): cell for cell in pending})
+            _collect(futures, bar, result)
     finally:
         queue.put(None)
         reader.join(timeout=5)
