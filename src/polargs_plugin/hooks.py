@@ -43,7 +43,7 @@ from torch import Tensor
 
 from polargs_plugin.config import PolarConfig
 from polargs_plugin.correction import compute_polar_maps, input_range, physical_stokes
-from polargs_plugin.io import PolarInputError, atomic_path
+from polargs_plugin.io import PolarInputError, atomic_torch_save
 from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, normals_within, scale_loss
 from polargs_plugin.types import (
     GaussianState, NewGaussians, PolarMaps, RenderOut, View, content_digest, describe_view, validate_view,
@@ -119,13 +119,34 @@ def _check_iteration(where: str, iteration: Any) -> None:
         raise ValueError(f"{where}: iteration must be an integer >= 1 (iterations are 1-based), got {iteration!r}")
 
 
-def _check_render(where: str, render: RenderOut, view: View, argument: str = "render",
+def _check_placement(where: str, tensors: Sequence[tuple[str, Tensor, torch.dtype | None]], view: View) -> None:
+    """Raise ValueError naming the argument when a tensor is on the meta device (no values), on
+    another device than the first one, or (where a dtype is given) of another dtype."""
+    first: tuple[str, torch.device] | None = None
+    for argument, tensor, dtype in tensors:
+        if tensor.device.type == "meta":
+            raise ValueError(f"{where}: {argument} is on the meta device, which holds no values; expected a "
+                             "tensor on the device the trainer renders on")
+        if dtype is not None and tensor.dtype != dtype:
+            raise ValueError(f"{where}: {argument} has dtype {tensor.dtype}, expected {dtype} like the maps of "
+                             f"view '{view.name}'")
+        if first is None:
+            first = (argument, tensor.device)
+        elif tensor.device != first[1]:
+            raise ValueError(f"{where}: {argument} is on {tensor.device} but {first[0]} on {first[1]}; give every "
+                             "tensor on one device")
+
+
+def _check_render(where: str, render: RenderOut, view: View, dtype: torch.dtype, argument: str = "render",
                   fields: Sequence[str] = ("depth", "normal", "alpha")) -> None:
+    """The ``fields`` of ``render`` (what the hooks read): shapes those of ``view``, dtype
+    ``dtype`` (the maps'), all on one real device."""
     height, width = view.height, view.width
     shapes = {"color": (3, height, width), "depth": (1, height, width), "normal": (3, height, width),
               "alpha": (1, height, width), "plane_depth": (1, height, width)}
     for name in fields:
         _check_shape(where, f"{argument}.{name}", getattr(render, name, None), shapes[name], view)
+    _check_placement(where, [(f"{argument}.{name}", getattr(render, name), dtype) for name in fields], view)
 
 
 class PolarHooks:
@@ -238,8 +259,7 @@ class PolarHooks:
             except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError):
                 pass  # unreadable cache entry: recompute and overwrite it
         maps = compute_polar_maps(view.stokes, view.mask, self.config.correction)
-        with atomic_path(path) as tmp:
-            torch.save({k: v.cpu() for k, v in _maps_to_dict(maps).items()}, tmp)
+        atomic_torch_save({k: v.cpu() for k, v in _maps_to_dict(maps).items()}, path)
         return maps
 
     def _reflective_targets(self, view: View, device: torch.device) -> ReflectiveTargets | None:
@@ -335,6 +355,9 @@ class PolarHooks:
         return extra, logs
 
     def _check_view_known(self, where: str, view: View) -> None:
+        if not isinstance(getattr(view, "stokes", None), Tensor):
+            raise ValueError(f"{where}: view '{getattr(view, 'name', '?')}' has no Stokes (view.stokes is "
+                             f"{type(getattr(view, 'stokes', None)).__name__}); expected a (3, C, H, W) tensor")
         shape = self._shapes.get(view.name)
         if shape is None:
             raise KeyError(f"{where}: view '{view.name}' was not preprocessed: call hooks.preprocess(views) first")
@@ -353,12 +376,18 @@ class PolarHooks:
             fields += ["plane_depth" if render.plane_depth is not None else "depth", "normal", "alpha"]
         elif cfg.use_normal and self._normal_loss_on(iteration) and self.normal_target(view.name) is not None:
             fields.append("normal")
-        _check_render(where, render, view, fields=fields)
+        _check_render(where, render, view, self._maps_dtype(view), fields=fields)
         if cfg.use_scale:
             scales = getattr(gaussians, "scales", None)
             if not isinstance(scales, Tensor) or scales.ndim != 2 or scales.shape[1] != 3:
                 shape = tuple(scales.shape) if isinstance(scales, Tensor) else type(scales).__name__
                 raise ValueError(f"{where}: gaussians.scales has shape {shape}, expected (N, 3)")
+            read = [(f"render.{name}", getattr(render, name), None) for name in fields]
+            _check_placement(where, read + [("gaussians.scales", scales, None)], view)
+
+    def _maps_dtype(self, view: View) -> torch.dtype:
+        """The dtype of a preprocessed view's maps, which a render's tensors must share."""
+        return self.maps[view.name].intensity.dtype
 
     def geometry_needed(self, iteration: int, view_name: str) -> bool:
         """Whether :meth:`loss` reads the render's depth, normal or alpha at this iteration for
@@ -406,11 +435,11 @@ class PolarHooks:
             return None
         self._check_view_known(where, view)
         if render is not None:
-            _check_render(where, render, view)
+            _check_render(where, render, view, self._maps_dtype(view))
 
         def checked_render_fn(source: View) -> RenderOut:
             out = render_fn(source)
-            _check_render(where, out, source, argument=f"render_fn(view '{source.name}')")
+            _check_render(where, out, source, self._maps_dtype(source), argument=f"render_fn(view '{source.name}')")
             return out
 
         with torch.no_grad():

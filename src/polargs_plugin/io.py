@@ -9,9 +9,11 @@ get the mode an ordinary ``open()`` would give them (``0o666`` less the process 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
+import re
 import socket
 import tempfile
 import time
@@ -22,6 +24,9 @@ __all__ = [
     "PolarInputError",
     "atomic_write",
     "atomic_path",
+    "remove_stale_temporaries",
+    "atomic_torch_save",
+    "torch_error_line",
     "current_umask",
     "check_writable",
     "FolderLock",
@@ -77,12 +82,59 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files :func:`atomic_path` left beside ``path`` when its writer was
+    killed (SIGKILL, a power cut) before renaming them; returns those removed.
+
+    Only for a caller that alone writes ``path`` now (e.g. under the folder's :class:`FolderLock`):
+    another writer's temporary file in progress would go too.
+    """
+    path = Path(path)
+    # mkstemp's names: the prefix, 8 characters of [a-z0-9_], the suffix
+    name = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}{re.escape(path.suffix)}")
+    removed = []
+    with contextlib.suppress(OSError):
+        for candidate in path.parent.iterdir():
+            if name.fullmatch(candidate.name) and candidate.is_file():
+                with contextlib.suppress(FileNotFoundError):
+                    candidate.unlink()
+                    removed.append(candidate)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
     """Open a temporary file beside ``path`` for writing; rename onto ``path`` on success."""
     with atomic_path(path) as tmp:
         with open(tmp, mode) as handle:
             yield handle
+
+
+def atomic_torch_save(data: Any, path: str | os.PathLike) -> Path:
+    """``torch.save(data, path)`` through :func:`atomic_path`: the file is complete or absent.
+
+    torch's file writer reports a failed write (a full disk, a file size limit) as RuntimeError
+    (``[enforce fail at inline_container.cc] . unexpected pos ...``); it is raised here as
+    OSError naming ``path``, like any other failed write.
+    """
+    import torch
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        try:
+            torch.save(data, tmp)
+        except RuntimeError as err:
+            raise OSError(errno.EIO, f"cannot write the file (torch: {torch_error_line(err)}; is the disk full?)",
+                          str(path)) from None
+    return path
+
+
+def torch_error_line(err: BaseException) -> str:
+    """The first sentence of a torch error's text, without the C++ source location that starts
+    it (``[enforce fail at inline_container.cc:672] .``)."""
+    lines = str(err).strip().splitlines()
+    first = re.sub(r"^\[enforce fail at [^\]]*\]\s*\.?\s*", "", lines[0]) if lines else ""
+    return re.split(r"(?<=\w)\. ", first)[0] or type(err).__name__
 
 
 def json_safe(value: Any) -> Any:
@@ -156,14 +208,20 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+# Tries to take a lock: each ends with a lock, an error, or a lock that changed hands meanwhile.
+_LOCK_ATTEMPTS = 20
+
+
 class FolderLock:
     """An exclusive lock on a folder: a lock file holding the holder's pid, host and start time.
 
     The file is created atomically, complete with its content (written beside it, then
     hard-linked, which fails when a lock exists); :meth:`release` removes it if it is still ours.
     A lock left by a process that no longer runs on this host (killed with SIGKILL, a power cut)
-    is *stale*: it is taken over and :attr:`note` says so. A lock of a live process, or of another
-    host (whose processes cannot be checked), raises :class:`FolderLockedError` naming the holder.
+    is *stale*: it is taken over and :attr:`note` says so; of several processes taking over the
+    same stale lock at once exactly one gets it (the others find its live lock). A lock of a live
+    process, or of another host (whose processes cannot be checked), raises
+    :class:`FolderLockedError` naming the holder.
 
     Usage::
 
@@ -176,6 +234,11 @@ class FolderLock:
         self.command = command
         self.note: str | None = None
         self._content: dict[str, Any] | None = None
+
+    @property
+    def held(self) -> bool:
+        """Whether this object holds the lock (acquired and not yet released)."""
+        return self._content is not None
 
     def describe(self, holder: dict[str, Any]) -> str:
         started = holder.get("started")
@@ -197,55 +260,97 @@ class FolderLock:
     def acquire(self) -> "FolderLock":
         content = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.time(), "command": self.command}
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        for _ in range(3):
-            fd, tmp = tempfile.mkstemp(prefix=".lock-", dir=self.path.parent)
-            try:
-                with os.fdopen(fd, "w") as handle:
-                    json.dump(content, handle)
-                os.chmod(tmp, 0o666 & ~current_umask())
-                try:
-                    os.link(tmp, self.path)  # atomic; fails if the lock exists
-                    self._content = content
-                    return self
-                except FileExistsError:
-                    pass
-                except OSError:  # no hard links on this file system: O_EXCL create
-                    try:
-                        excl = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-                    except FileExistsError:
-                        pass
-                    else:
-                        with os.fdopen(excl, "w") as handle:
-                            json.dump(content, handle)
-                        self._content = content
-                        return self
-            finally:
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(tmp)
+        for attempt in range(_LOCK_ATTEMPTS):
+            if self._create(content):
+                self._content = content
+                return self
+            seen = self._signature()
             holder = self._read()
             if holder is None:
                 continue  # released meanwhile: try again
-            stale = (
-                holder.get("host") == socket.gethostname()
-                and isinstance(holder.get("pid"), int)
-                and not _pid_alive(holder["pid"])
-            )
-            if not holder:  # unreadable or empty: stale only when old (a writer is not that slow)
-                with contextlib.suppress(OSError):
-                    stale = time.time() - self.path.stat().st_mtime > 60
-                if not stale:
-                    raise FolderLockedError(self.path, "locked (unreadable lock file); delete it if no polargs command uses the folder", holder)
-            if not stale:
-                raise FolderLockedError(
-                    self.path,
-                    f"the folder is in use by {self.describe(holder)}; wait for it to finish, or delete "
-                    "this lock file if that process is gone",
-                    holder,
-                )
-            self.note = f"{self.path}: took over the stale lock of {self.describe(holder)}, which no longer runs"
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(self.path)
+            self._check_stale(holder)
+            if self._take_over(seen, holder):
+                self.note = f"{self.path}: took over the stale lock of {self.describe(holder)}, which no longer runs"
+            else:
+                time.sleep(0.002 * (attempt + 1))  # another process is taking it over: see who won
         raise PolarInputError(self.path, "could not take the lock (it keeps changing hands)")
+
+    def _create(self, content: dict[str, Any]) -> bool:
+        """Create the lock file complete with ``content``; False when a lock exists."""
+        fd, tmp = tempfile.mkstemp(prefix=".lock-", dir=self.path.parent)
+        try:
+            with os.fdopen(fd, "w") as handle:
+                json.dump(content, handle)
+            os.chmod(tmp, 0o666 & ~current_umask())
+            try:
+                os.link(tmp, self.path)  # atomic; fails if the lock exists
+                return True
+            except FileExistsError:
+                return False
+            except OSError:  # no hard links on this file system: O_EXCL create
+                try:
+                    excl = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+                except FileExistsError:
+                    return False
+                with os.fdopen(excl, "w") as handle:
+                    json.dump(content, handle)
+                return True
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+
+    def _signature(self) -> tuple[int, int, int] | None:
+        """(inode, mtime in ns, size) of the lock file, None when there is none."""
+        try:
+            stat = self.path.stat()
+        except OSError:
+            return None
+        return stat.st_ino, stat.st_mtime_ns, stat.st_size
+
+    def _check_stale(self, holder: dict[str, Any]) -> None:
+        """Raise FolderLockedError unless ``holder``'s lock is stale: its process no longer runs
+        on this host, or the file is unreadable and older than a minute (a writer is not that slow)."""
+        if not holder:
+            stale = False
+            with contextlib.suppress(OSError):
+                stale = time.time() - self.path.stat().st_mtime > 60
+            if not stale:
+                raise FolderLockedError(self.path, "locked (unreadable lock file); delete it if no polargs command uses the folder", holder)
+            return
+        if holder.get("host") == socket.gethostname() and isinstance(holder.get("pid"), int) and not _pid_alive(holder["pid"]):
+            return
+        raise FolderLockedError(
+            self.path,
+            f"the folder is in use by {self.describe(holder)}; wait for it to finish, or delete "
+            "this lock file if that process is gone",
+            holder,
+        )
+
+    def _take_over(self, seen: tuple[int, int, int] | None, holder: dict[str, Any]) -> bool:
+        """Remove the stale lock file judged by its ``seen`` signature and ``holder`` content, if
+        this process is the one to do it; False when another process is taking it over.
+
+        Deleting what was read moments ago could delete the lock another process has taken over
+        since; so the remover first creates ``<lock>.takeover`` exclusively (one process at a
+        time), and removes the lock only if it is still the stale one. A claim older than a
+        minute was left by a process killed while holding it, and is removed.
+        """
+        claim = self.path.with_name(self.path.name + ".takeover")
+        try:
+            os.close(os.open(claim, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        except FileExistsError:
+            with contextlib.suppress(OSError):
+                if time.time() - claim.stat().st_mtime > 60:
+                    os.unlink(claim)
+            return False
+        try:
+            if seen is None or self._signature() != seen or self._read() != holder:
+                return False  # taken over (or released) since it was judged
+            os.unlink(self.path)
+            return True
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(claim)
 
     def release(self) -> None:
         """Remove the lock file if it still holds this process's lock."""

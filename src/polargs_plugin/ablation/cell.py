@@ -11,8 +11,9 @@ Resuming: training checkpoints periodically (``Cell.checkpoint_every``) into the
 fingerprint). A run that is interrupted (killed, preempted, timed out, Ctrl-C) keeps that folder
 and the next attempt resumes from it; the reference trainer's checkpoints resume bit-exactly, so
 the run folder is the same as an uninterrupted run's (timings aside). A run that *fails* (an
-exception) discards it: after a fix the cell starts over. The folder is removed once the run
-folder is published.
+exception) discards it: after a fix the cell starts over; a failed write (OSError: a full disk)
+keeps it, as the checkpoint it holds is intact. The folder is removed once the run folder is
+published.
 
 Run folder contents::
 
@@ -181,12 +182,14 @@ def partial_dir(cell: Cell) -> Path:
 _INTERRUPTED = False
 
 
-def mark_interrupted() -> None:
-    """Called by a job's preemption / timeout handler (submitit's ``checkpoint``) before it exits:
-    the ``SystemExit`` that follows is an interruption (the partial checkpoint is kept and the
-    exception passes through unchanged), not a failure."""
+def mark_interrupted(interrupted: bool = True) -> None:
+    """Called by a job's preemption / timeout handler (submitit's ``checkpoint``) before it exits,
+    or by a pool worker's signal handler: the ``SystemExit`` that follows, or whatever the
+    interruption turns into (an import it breaks fails with ImportError), is an interruption (the
+    partial checkpoint is kept and the exception passes through unchanged), not a failure.
+    ``interrupted=False`` clears the mark (a pool worker before its next cell)."""
     global _INTERRUPTED
-    _INTERRUPTED = True
+    _INTERRUPTED = interrupted
 
 
 def _is_interruption(err: BaseException) -> bool:
@@ -262,7 +265,8 @@ def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
         with contextlib.suppress(OSError):
             os.replace(tmp / "run.log", cell.log_path)
         shutil.rmtree(tmp, ignore_errors=True)
-        shutil.rmtree(partial, ignore_errors=True)  # a failed run starts over (after a fix)
+        if not isinstance(err, OSError):  # a failed write (a full disk) leaves an intact checkpoint to resume
+            shutil.rmtree(partial, ignore_errors=True)  # a failed run starts over (after a fix)
         raise CellFailed(cell.name, str(cell.log_path), message) from None
 
 
@@ -434,7 +438,7 @@ def _mesh(cell: Cell, trainer, views: list, tmp: Path) -> None:
                             sdf_trunc=cell.mesh.get("sdf_trunc"), depth_trunc=cell.mesh.get("depth_trunc"),
                             alpha_threshold=cell.mesh.get("alpha_threshold", 0.5),
                             min_cluster=cell.mesh.get("min_cluster", 0.05))
-    result = fuse_model(_trained_model(trainer), views, settings, source=str(tmp))
+    result = fuse_model(_trained_model(trainer), views, settings, source=str(_published(tmp, tmp, cell)))
     write_mesh_result(result, tmp / MESH_NAME)
     canonical_mesh_order(tmp / MESH_NAME)
 
@@ -449,8 +453,24 @@ def _evaluate(cell: Cell, trainer, dataset, summary: dict[str, Any], tmp: Path, 
                             num_samples=int(cell.eval.get("num_samples", 1_000_000)),
                             units=cell.eval.get("units", "scene units"), cull=cull, cull_dilation=EVAL_CULL_DILATION)
     metrics = evaluate(tmp, settings, run=Run(tmp, _trained_model(trainer), dataset, summary))
+    metrics = _published(metrics, tmp, cell)
     write_metrics(metrics, tmp / METRICS_NAME)
     return metrics, cull
+
+
+def _published(value: Any, tmp: Path, cell: Cell) -> Any:
+    """``value`` (a path, or JSON data holding paths) with the paths into the temporary folder
+    ``tmp`` made to point into the run folder it becomes, as an absolute path."""
+    if isinstance(value, dict):
+        return {key: _published(item, tmp, cell) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_published(item, tmp, cell) for item in value]
+    if isinstance(value, (str, Path)):
+        path, base = os.path.abspath(value), os.path.abspath(tmp)
+        if path == base or path.startswith(base + os.sep):
+            published = os.path.normpath(os.path.join(os.path.abspath(cell.run_dir), os.path.relpath(path, base)))
+            return Path(published) if isinstance(value, Path) else published
+    return value
 
 
 def _figures(metrics: dict[str, Any], figures: dict[str, Any], curve: list[dict[str, float]]) -> dict[str, Any]:
@@ -523,6 +543,8 @@ def _recording_trainer_class() -> type:
             return super().save_checkpoint(path)
 
         def step(self) -> dict[str, float]:
+            if _INTERRUPTED:  # an interruption that a library swallowed on the way (an `except ImportError`)
+                raise KeyboardInterrupt
             logs = super().step()
             self.curve.append({
                 "iteration": self.iteration,

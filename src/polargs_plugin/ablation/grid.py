@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
-from polargs_plugin.ablation.cell import INITS, Cell, CellFailed, is_done, run_cell
+from polargs_plugin.ablation.cell import INITS, Cell, CellFailed, is_done, mark_interrupted, run_cell
 from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, parse_scene
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.data import ReaderOptions
@@ -147,8 +147,11 @@ def build_cells(options: GridOptions, scene_texts: Sequence[str], variants: Sequ
                         eval={"num_samples": options.eval_samples, "cull": options.cull},
                         threads=options.threads, device=options.device, checkpoint_every=options.checkpoint_every,
                         reader={} if scene.bundled is not None else dict(reader))
-    for variant in dict.fromkeys(variants):  # overrides are checked before anything runs
-        next(c for c in cells if c.variant == variant).configs()
+    hooked = [variant for variant in dict.fromkeys(variants)  # overrides are checked before anything runs
+              if next(c for c in cells if c.variant == variant).configs()[1] is not None]
+    if options.polar_overrides and not hooked:
+        raise PolarInputError("--polar-set", f"sets PolarGS values, but no variant of this grid uses the PolarGS hooks "
+                              f"({', '.join(dict.fromkeys(variants))})")
     return cells
 
 
@@ -304,34 +307,54 @@ _QUEUE: Any = None
 
 
 _ORPHANED = threading.Event()
+_STOP: Any = None  # the grid's stop event (a multiprocessing Event), set when the grid is interrupted
+_IN_CELL = threading.Event()  # this worker runs a cell
+_INTERRUPTED = threading.Event()  # ... and has been asked to stop it
 
 
-def _stop_when_orphaned(parent: int, interval: float = 1.0, grace: float = 10.0) -> None:
-    """End this worker once its parent, the grid, is gone: a grid stopped by SIGTERM or SIGKILL
-    cannot stop its workers itself, and they would otherwise train their cells to the end unseen.
-    SIGINT stops the running cell as Ctrl-C does (its partial checkpoint is kept) and
+def _interrupt_cell(signum: int, frame: Any) -> None:
+    """A worker's SIGINT / SIGTERM handler: stop the running cell once, as Ctrl-C does (its
+    partial checkpoint is kept). A signal between cells, or a repeated one, is ignored: it would
+    otherwise break the pool's loop, or the cell's own clean-up of the interruption."""
+    if _IN_CELL.is_set() and not _INTERRUPTED.is_set():
+        _INTERRUPTED.set()
+        mark_interrupted()  # what the KeyboardInterrupt may turn into still ends the cell as interrupted
+        raise KeyboardInterrupt
+
+
+def _watch(parent: int, interval: float = 1.0, grace: float = 10.0) -> None:
+    """Stop this worker's cell when the grid asks (its stop event), and end this worker once its
+    parent, the grid, is gone: a grid killed by SIGKILL cannot stop its workers itself, and they
+    would otherwise train their cells to the end unseen. SIGINT stops the running cell and
     :func:`_worker` then exits; a worker that was idle, or that blocks on the pool's pipes (nobody
     reads them any more), exits after ``grace`` seconds."""
+    stopped = False
     while os.getppid() == parent:
-        time.sleep(interval)
+        if _STOP is None or stopped:
+            time.sleep(interval)
+        elif _STOP.wait(interval):
+            stopped = True
+            os.kill(os.getpid(), signal.SIGINT)
     _ORPHANED.set()
     os.kill(os.getpid(), signal.SIGINT)
     time.sleep(grace)
     os._exit(1)
 
 
-def _init_worker(queue: Any, threads: int, gpu_queue: Any = None, parent: int | None = None) -> None:
+def _init_worker(queue: Any, threads: int, gpu_queue: Any = None, parent: int | None = None, stop: Any = None) -> None:
     """Pool initializer: thread counts before torch / numba are imported, the progress queue,
     this worker's GPU (``CUDA_VISIBLE_DEVICES``, read by CUDA at its first use in the worker) and
-    a watch on ``parent``, the grid's process id (:func:`_stop_when_orphaned`; passed, not read
-    here: the grid may be gone before a spawned worker gets this far)."""
-    global _QUEUE
-    _QUEUE = queue
+    a watch (:func:`_watch`) on ``stop``, the grid's stop event, and on ``parent``, the grid's
+    process id (passed, not read here: the grid may be gone before a spawned worker gets this far)."""
+    global _QUEUE, _STOP
+    _QUEUE, _STOP = queue, stop
     # A grid started in the background (`cmd &` in a script, nohup) inherits SIGINT ignored; the
-    # workers take Python's own handler back so that an interruption reaches the cell.
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    # workers take their own handler so that an interruption reaches the cell. SIGTERM (a
+    # scheduler's, sent to every process of a job) stops the cell the same way.
+    signal.signal(signal.SIGINT, _interrupt_cell)
+    signal.signal(signal.SIGTERM, _interrupt_cell)
     if parent is not None:
-        threading.Thread(target=_stop_when_orphaned, args=(parent,), daemon=True).start()
+        threading.Thread(target=_watch, args=(parent,), daemon=True).start()
     for key in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[key] = str(max(1, threads))
     if gpu_queue is not None:
@@ -347,12 +370,19 @@ def _worker(cell_data: dict) -> dict:
         if phase != "train" or done % step == 0 or done == total:
             _QUEUE.put((cell.name, phase, done, total))
 
+    _INTERRUPTED.clear()
+    mark_interrupted(False)
+    _IN_CELL.set()  # before the check: a stop signalled from here on interrupts the cell
     try:
+        if _STOP is not None and _STOP.is_set():
+            raise KeyboardInterrupt  # the grid was interrupted: a cell queued meanwhile does not start
         return run_cell(cell, progress=report)
-    except KeyboardInterrupt:
+    except BaseException:
         if _ORPHANED.is_set():  # the grid is gone: nobody to report to, and exiting normally would
             os._exit(130)  # wait for the pool's feeder threads on pipes nobody reads
         raise
+    finally:
+        _IN_CELL.clear()
 
 
 def _write_crash_log(cell: Cell, message: str) -> str:
@@ -454,25 +484,48 @@ def _run_pool(pending: Sequence[Cell], jobs: int, bar: _Progress, result: GridRe
 
     reader = threading.Thread(target=pump, daemon=True)
     reader.start()
+    stop = context.Event()
     try:
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                                    initializer=_init_worker, initargs=(queue, threads, gpu_queue, os.getpid())) as pool:
-            futures = {pool.submit(_worker, cell.to_dict()): cell for cell in pending}
-            for future in cf.as_completed(futures):
-                cell = futures[future]
-                try:
-                    summary = future.result()
-                except CellFailed as failure:
-                    result.failed.append((cell, failure.log, failure.message))
-                    bar.finish(cell.name, False, f"FAILED  {failure}")
-                except Exception as err:  # the worker process died (BrokenProcessPool) or could not start
-                    message = f"worker process failed: {type(err).__name__}: {err}"
-                    log = _write_crash_log(cell, message)
-                    result.failed.append((cell, log, message))
-                    bar.finish(cell.name, False, f"FAILED  {cell.name}: {message} (log: {log})")
-                else:
-                    result.finished.append((cell, summary))
-                    bar.finish(cell.name, True, _finished_line(cell, summary))
+        futures: dict = {}
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker,
+                                    initargs=(queue, threads, gpu_queue, os.getpid(), stop)) as pool, \
+                _stopping_on_interrupt(stop, futures):
+            futures.update({pool.submit(_worker, cell.to_dict()): cell for cell in pending})
+            _collect(futures, bar, result)
     finally:
         queue.put(None)
         reader.join(timeout=5)
+
+
+@contextlib.contextmanager
+def _stopping_on_interrupt(stop: Any, futures: dict) -> Any:
+    """On KeyboardInterrupt (Ctrl-C, or SIGTERM turned into it): cancel the cells not started, ask
+    the workers to stop their running cells (each keeps its partial checkpoint) and wait until they
+    have, so the pool ends cleanly (no process or semaphore left behind); then re-raise."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        for future in futures:
+            future.cancel()
+        stop.set()
+        cf.wait(futures)
+        raise
+
+
+def _collect(futures: dict, bar: _Progress, result: GridResult) -> None:
+    """Each cell's outcome into ``result`` as its future completes."""
+    for future in cf.as_completed(futures):
+        cell = futures[future]
+        try:
+            summary = future.result()
+        except CellFailed as failure:
+            result.failed.append((cell, failure.log, failure.message))
+            bar.finish(cell.name, False, f"FAILED  {failure}")
+        except Exception as err:  # the worker process died (BrokenProcessPool) or could not start
+            message = f"worker process failed: {type(err).__name__}: {err}"
+            log = _write_crash_log(cell, message)
+            result.failed.append((cell, log, message))
+            bar.finish(cell.name, False, f"FAILED  {cell.name}: {message} (log: {log})")
+        else:
+            result.finished.append((cell, summary))
+            bar.finish(cell.name, True, _finished_line(cell, summary))

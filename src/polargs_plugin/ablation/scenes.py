@@ -66,7 +66,8 @@ def parse_scene(text: str, cache_dir: str | os.PathLike, views: int = 24, width:
     """A :class:`SceneSpec` from its command-line spelling (module docstring).
 
     A path that does not exist is accepted here: its cells fail with a log, the rest of the grid
-    runs. Raises ValueError for a malformed entry (empty, bad name).
+    runs. Raises ValueError for a malformed entry (empty, bad name: other characters than
+    letters, digits, ``_ . -``, or a leading ``.``, which would hide its run folders).
     """
     text = text.strip()
     if not text:
@@ -87,6 +88,8 @@ def parse_scene(text: str, cache_dir: str | os.PathLike, views: int = 24, width:
     name = name or path.resolve().name
     if not _NAME_RE.match(name):
         raise ValueError(f"scene '{text}': name '{name}' may only hold letters, digits, '_', '.', '-'")
+    if name.startswith("."):  # its run folders would be hidden ones, which gather and --status skip
+        raise ValueError(f"scene '{text}': name '{name}' starts with '.'; give another name (NAME=PATH)")
     return SceneSpec(name, str(path.resolve()), str(Path(gt).resolve()) if gt else None)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import signal
 import sys
 import time
 from pathlib import Path
@@ -13,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.ablation.variants import DESCRIPTIONS, PRESETS, VARIANTS
 from polargs_plugin.cli.argtypes import image_size, non_negative_int, positive_float, positive_int
-from polargs_plugin.cli.common import add_reader_options, reader_options
+from polargs_plugin.cli.common import add_reader_options, on_stop_signals, reader_options
 from polargs_plugin.io import PolarInputError
 
 if TYPE_CHECKING:
@@ -236,8 +237,28 @@ def execute(args: argparse.Namespace, cells: list, command: str) -> int:
                   file=sys.stderr, flush=True)
     where = f"GPUs {','.join(gpus)}, " if gpus and jobs > 1 else ""
     print(f"ablation: {len(todo)} runs in {out} ({jobs} at a time, {where}{args.threads_per_run} thread(s) each)", file=sys.stderr, flush=True)
-    result = run_grid(todo, jobs=jobs, progress=not args.quiet, gpus=gpus if jobs > 1 else ())
+    received: list[int] = []
+
+    def interrupt(signum: int) -> None:  # SIGTERM as Ctrl-C: the grid stops its runs and ends cleanly
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    try:
+        with on_stop_signals(interrupt):
+            result = run_grid(todo, jobs=jobs, progress=not args.quiet, gpus=gpus if jobs > 1 else ())
+    except KeyboardInterrupt:
+        return _interrupted(cells, out, received[0] if received else signal.SIGINT)
     return _finish(args, cells, command, result, start)
+
+
+def _interrupted(cells: list, out: Path, signum: int) -> int:
+    """The line an interrupted grid ends with; its exit status (128 + the signal)."""
+    from polargs_plugin.ablation.cell import is_done
+
+    done = sum(is_done(cell) for cell in cells)
+    print(f"interrupted ({signal.Signals(signum).name}): {done} of {len(cells)} runs finished; runs under way keep "
+          f"their last periodic checkpoint in {out / '.partial'}; the same command continues them", file=sys.stderr)
+    return 128 + int(signum)
 
 
 def _finish(args: argparse.Namespace, cells: list, command: str, result, start: float, skipped_note: str = "") -> int:

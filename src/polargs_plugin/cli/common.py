@@ -8,12 +8,15 @@ Every ordinary error of a command is one line ``error: FILE: problem`` on stderr
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
+from typing import Callable, Iterator
 
 from polargs_plugin.cli.argtypes import positive_int
 from polargs_plugin.service.data import PATTERNS, ReaderOptions
 
-__all__ = ["add_reader_options", "reader_options", "print_error", "EXIT_BAD_INPUT"]
+__all__ = ["add_reader_options", "reader_options", "print_error", "on_stop_signals", "EXIT_BAD_INPUT"]
 
 #: Exit status of an ordinary error (bad input, a missing file, a refused setting).
 EXIT_BAD_INPUT = 2
@@ -57,3 +60,19 @@ def print_error(message: str) -> int:
     """Print ``error: message`` on stderr; returns :data:`EXIT_BAD_INPUT`."""
     print(f"error: {message}", file=sys.stderr)
     return EXIT_BAD_INPUT
+
+
+@contextlib.contextmanager
+def on_stop_signals(handler: Callable[[int], None]) -> Iterator[None]:
+    """Call ``handler(signum)`` on SIGINT and SIGTERM while the block runs (in the main thread;
+    elsewhere signals cannot be handled and nothing changes); the previous handlers come back after."""
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(ValueError, OSError):  # not the main thread
+            previous[signum] = signal.signal(signum, lambda number, frame: handler(number))
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            with contextlib.suppress(ValueError, OSError):
+                signal.signal(signum, old)

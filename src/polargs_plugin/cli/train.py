@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.cli.argtypes import non_negative_int, positive_float, positive_int
-from polargs_plugin.cli.common import add_reader_options, print_error, reader_options
+from polargs_plugin.cli.common import add_reader_options, on_stop_signals, print_error, reader_options
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.configs import PRESETS, SCHEDULES, SWITCHES
 
@@ -160,21 +160,13 @@ def _note(line: str) -> None:
 @contextlib.contextmanager
 def _stop_on_signals(stop: StopRequest):
     """SIGINT / SIGTERM ask ``stop`` to end the training (after this iteration; a second: at once)."""
-    def handler(signum: int, frame: Any) -> None:
+    def handler(signum: int) -> None:
         stop.request(signum)  # raises KeyboardInterrupt when it stops at once
         print(f"\n{signal.Signals(signum).name}: stopping after this iteration (again to stop at once)",
               file=sys.stderr, flush=True)
 
-    previous = {}
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        with contextlib.suppress(ValueError, OSError):  # not the main thread
-            previous[signum] = signal.signal(signum, handler)
-    try:
+    with on_stop_signals(handler):
         yield stop
-    finally:
-        for signum, old in previous.items():
-            with contextlib.suppress(ValueError, OSError):
-                signal.signal(signum, old)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -21,7 +21,8 @@ way round. Verdicts: "consistent" (|z_ccw| >= |z_mirror| + margin and phase with
 along the edges, or edges only along directions where both hypotheses agree (multiples of 45
 degrees, e.g. an axis-aligned box).
 
-Also here: :func:`image_scale_ratio` (a dataset's 8-bit picture against its Stokes s0 / 2) and
+Also here: :func:`brightness_outliers` (views far brighter or darker than the others),
+:func:`image_scale_ratio` (a dataset's 8-bit picture against its Stokes s0 / 2) and
 :func:`orient_normal_map` (the frame of a dataset's GT normal maps, from the same silhouettes).
 """
 
@@ -45,6 +46,8 @@ __all__ = [
     "boundary_band",
     "silhouette_stats",
     "check_views",
+    "brightness_outliers",
+    "warn_brightness_outliers",
     "image_scale_ratio",
     "orient_normal_map",
 ]
@@ -207,6 +210,44 @@ def check_views(views: Sequence[View]) -> CheckReport:
     if odd:
         messages.append(f"{len(odd)} view(s) disagree with the pooled verdict: {', '.join(odd[:10])}")
     return CheckReport(overall.verdict, overall, per_view, messages)
+
+
+# ---------------------------------------------------------------------------------------------
+# Brightness of the views against each other.
+
+BRIGHTNESS_FACTOR = 4.0
+"""A view whose mean s0 is this many times above or below the median view's is named in a warning."""
+
+
+def brightness_outliers(views: Sequence[View], factor: float = BRIGHTNESS_FACTOR) -> list[tuple[str, float]]:
+    """Views whose mean brightness (s0 over every pixel and channel) is ``factor`` or more times
+    above or below that of the median view, as (name, mean / median mean).
+
+    Views of one scene taken with one camera differ in brightness by what they see (the bundled
+    scenes by less than a factor 2); a factor of 4 or more points to a reading error instead: a
+    wrong bit depth (8-bit values in a 16-bit file read 257 times too dark), another exposure,
+    a broken file. Fewer than 3 views have no median to compare with: none is named.
+    """
+    if len(views) < 3:
+        return []
+    means = [float(view.stokes[0].detach().double().mean()) for view in views]
+    median = float(np.median(means))
+    if not median > 0:
+        return []
+    return [(view.name, mean / median) for view, mean in zip(views, means)
+            if mean >= factor * median or mean * factor <= median]
+
+
+def warn_brightness_outliers(views: Sequence[View], source: str, factor: float = BRIGHTNESS_FACTOR) -> list[tuple[str, float]]:
+    """:func:`brightness_outliers`, with a warning naming them (``source``: the dataset)."""
+    outliers = brightness_outliers(views, factor)
+    if outliers:
+        named = ", ".join(f"'{name}' ({ratio:.3g} times brighter)" if ratio > 1 else f"'{name}' ({1 / ratio:.3g} times darker)"
+                          for name, ratio in outliers[:5]) + (", ..." if len(outliers) > 5 else "")
+        warnings.warn(f"{source}: {len(outliers)} of {len(views)} views differ from the median view's brightness by a "
+                      f"factor of {factor:g} or more: {named}; a wrong bit depth, another exposure or a broken file?",
+                      stacklevel=2)
+    return outliers
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ pixel, shared exponent, no negative values) and ``.npy``.
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import cv2
@@ -32,6 +33,7 @@ __all__ = [
     "read_npy",
     "write_npy",
     "check_finite",
+    "warn_narrow_range",
     "check_stokes",
     "to_hwc",
     "linear_to_srgb",
@@ -48,6 +50,22 @@ def _swap_rb(array: np.ndarray) -> np.ndarray:
     if array.ndim == 3 and array.shape[2] in (3, 4):
         return np.ascontiguousarray(array[..., [2, 1, 0] + list(range(3, array.shape[2]))])
     return array
+
+
+def warn_narrow_range(peak: int, bits: int, path: PathLike, declared: str) -> None:
+    """Warn when integer images taken as ``bits`` deep (more than 8) hold values only up to 255:
+    8-bit data in a wider file, which reads ``(2^bits - 1) / 255`` times too dark.
+
+    Args:
+        peak: the largest value of the images (a view's four angle images, or a raw frame).
+        bits: the bit depth they are read with.
+        path: the (first) file, named in the warning.
+        declared: what set ``bits``, e.g. ``"cameras.json declares bit_depth 16"``.
+    """
+    if bits > 8 and peak <= 255:
+        full = 2**bits - 1
+        warnings.warn(f"{path}: values only up to {peak} of {full} ({declared}): 8-bit data in a {bits}-bit file? "
+                      f"It reads {full / 255:.0f} times too dark", stacklevel=3)
 
 
 def check_finite(array: np.ndarray, path: PathLike) -> np.ndarray:

@@ -51,6 +51,7 @@ from polargs_plugin.data.imageio_utils import (
     read_image,
     read_npy,
     to_hwc,
+    warn_narrow_range,
     write_png,
 )
 from polargs_plugin.data.sfm import run_sfm
@@ -74,16 +75,34 @@ _RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 _ANGLE_NAMES = tuple(str(a) for a in POLARIZER_ANGLES_DEG)
 
 
-def _read_angle_image(path: Path, bit_depth: int | None) -> tuple[np.ndarray, np.dtype]:
+def _read_angle_image(path: Path, bit_depth: int | None) -> tuple[np.ndarray, np.dtype, int | None]:
+    """(H, W, C) float32 image in [0, 1], the file's dtype and its largest value (None for EXR)."""
     if path.suffix.lower() == ".exr":
         array = read_exr(path)
-        return array, array.dtype
+        return array, array.dtype, None
     raw = read_image(path)
+    _check_bit_depth(bit_depth, raw.dtype, path)
     scale = UINT_MAX[raw.dtype] if bit_depth is None else 2**bit_depth - 1
     if raw.max() > scale:
         raise PolarInputError(path, f"values up to {raw.max()} exceed the {bit_depth}-bit range")
     array = raw[..., None] if raw.ndim == 2 else raw[..., :3]
-    return array.astype(np.float32) / np.float32(scale), raw.dtype
+    return array.astype(np.float32) / np.float32(scale), raw.dtype, int(raw.max())
+
+
+def _check_bit_depth(bit_depth: int | None, dtype: np.dtype, path: Path) -> None:
+    """Refuse a bit depth above what the file's integer type holds: its data would read
+    ``2^(bit_depth - bits)`` times too dark."""
+    bits = 8 * np.dtype(dtype).itemsize
+    if bit_depth is not None and bit_depth > bits:
+        raise PolarInputError(path, f"{bits}-bit file, but --bit-depth {bit_depth} was given: it holds at most {bits} bits")
+
+
+def _warn_narrow_view(peak: int | None, dtype: np.dtype, bit_depth: int | None, path: Path) -> None:
+    """:func:`warn_narrow_range` for a view's integer images (``peak``: their largest value)."""
+    if peak is None:
+        return
+    declared = f"--bit-depth {bit_depth}" if bit_depth is not None else f"the file's {8 * np.dtype(dtype).itemsize}-bit type"
+    warn_narrow_range(peak, bit_depth or 8 * np.dtype(dtype).itemsize, path, declared + "; --bit-depth 8 if the data is 8-bit")
 
 
 def _files_by_stem(directory: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
@@ -125,14 +144,16 @@ def _image_root(folder: Path) -> Path:
 
 def _stokes_from_angles(paths: list[Path], bit_depth: int | None) -> torch.Tensor:
     images = [_read_angle_image(p, bit_depth) for p in paths]
-    for (array, dtype), path in zip(images, paths):
+    for (array, dtype, _), path in zip(images, paths):
         if array.shape != images[0][0].shape or dtype != images[0][1]:
             raise PolarInputError(
                 path, f"{array.shape[:2]} {dtype} image differs from {paths[0].name} ({images[0][0].shape[:2]} {images[0][1]})"
             )
-    intensities = np.stack([array.transpose(2, 0, 1) for array, _ in images])
+    intensities = np.stack([array.transpose(2, 0, 1) for array, _, _ in images])
     if not intensities.max() > 0:
         raise PolarInputError(paths[0], "all-dark view: every angle image is zero")
+    peaks = [peak for _, _, peak in images if peak is not None]
+    _warn_narrow_view(max(peaks) if peaks else None, images[0][1], bit_depth, paths[0])
     return stokes_from_intensities(torch.from_numpy(intensities))
 
 
@@ -144,6 +165,8 @@ def _read_raw(path: Path) -> np.ndarray:
 
 
 def _stokes_from_raw(raw: np.ndarray, path: Path, pattern: str, bit_depth: int | None) -> torch.Tensor:
+    if raw.dtype in UINT_MAX and (bit_depth is None or bit_depth <= 8 * raw.dtype.itemsize):
+        _warn_narrow_view(int(raw.max()), raw.dtype, bit_depth, path)
     intensities = demosaic_polar(raw, pattern=pattern, bit_depth=bit_depth, source=str(path))
     return stokes_from_intensities(intensities)
 

@@ -21,6 +21,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+from polargs_plugin.data.checks import warn_brightness_outliers
 from polargs_plugin.data.neisf import read_neisf
 from polargs_plugin.data.nersp import read_nersp
 from polargs_plugin.data.pandora import read_pandora
@@ -97,7 +98,8 @@ def load_views(path: str | os.PathLike, fmt: str = "auto", **kwargs) -> list[Vie
             ``bit_depth``, ``sfm``, ``check_pattern``, ``info`` for polar; :func:`reader_options`).
 
     Returns:
-        list of :class:`~polargs_plugin.types.View`.
+        list of :class:`~polargs_plugin.types.View`; a warning names the views whose brightness
+        is 4 times or more off the median view's (:func:`~polargs_plugin.data.checks.brightness_outliers`).
 
     Raises:
         PolarInputError: naming the folder: no known format, or an option its reader does not take.
@@ -115,4 +117,5 @@ def load_views(path: str | os.PathLike, fmt: str = "auto", **kwargs) -> list[Vie
     views = FORMATS[fmt][2](Path(path), **kwargs)
     for view in views:  # a NaN pixel in an EXR / HDR file must not reach training silently
         validate_view(view, "load_views")
+    warn_brightness_outliers(views, str(path))  # nor a view read 257 times too dark
     return views

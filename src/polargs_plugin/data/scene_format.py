@@ -33,6 +33,7 @@ import open3d as o3d
 import torch
 from torch import Tensor
 
+from polargs_plugin.data.imageio_utils import warn_narrow_range
 from polargs_plugin.data.synthetic import SyntheticScene, mask_from_ranges, triangle_ranges
 from polargs_plugin.io import PolarInputError, atomic_path, atomic_write
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, stokes_from_intensities
@@ -259,13 +260,16 @@ def _read_png(path: Path, what: str) -> np.ndarray:
 
 def _read_angles(folder: Path, name: str, header: dict) -> Tensor:
     """(4, C, H, W) float32 angle images in [0, 1], validated."""
-    images, first = [], None
+    images, first, peak = [], None, 0
     for angle in POLARIZER_ANGLES_DEG:
         path = _angle_path(folder, name, angle)
         image = _read_png(path, f"{angle} deg angle image of view {name!r}")
         if image.dtype not in (np.uint8, np.uint16):
             raise PolarInputError(path, f"dtype {image.dtype}, expected uint8 or uint16")
         if first is None:
+            bits = 8 * image.dtype.itemsize
+            if bits != header["bit_depth"]:  # read by the dtype's range, it would be 257 times too dark or bright
+                raise PolarInputError(path, f"{bits}-bit image, but {CAMERAS_FILE} declares bit_depth {header['bit_depth']}")
             first = (path, image)
             if image.shape[:2] != (header["height"], header["width"]):
                 raise PolarInputError(
@@ -277,7 +281,9 @@ def _read_angles(folder: Path, name: str, header: dict) -> Tensor:
             )
         if image.max() == 0:
             raise PolarInputError(path, "image is all dark (every pixel 0)")
+        peak = max(peak, int(image.max()))
         images.append(image.astype(np.float32) / np.iinfo(image.dtype).max)
+    warn_narrow_range(peak, header["bit_depth"], first[0], f"{CAMERAS_FILE} declares bit_depth {header['bit_depth']}")
     stacked = np.stack(images)
     if stacked.ndim == 3:
         stacked = stacked[..., None]

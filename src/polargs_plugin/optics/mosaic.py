@@ -153,9 +153,12 @@ def _full_scale(raw: Tensor, bit_depth: int | None, source: str) -> float:
         native = _NATIVE_BITS.get(raw.dtype)
         if bit_depth is None and native is None:
             raise PolarInputError(source, f"give bit_depth for a raw mosaic of dtype {raw.dtype}")
+        if native is not None and bit_depth is not None and bit_depth > native:  # it would read 2^(bit_depth - native) times too dark
+            raise PolarInputError(source, f"{native}-bit raw mosaic, but bit_depth {bit_depth} was given: it holds at most "
+                                  f"{native} bits")
         bit_depth = bit_depth or native
         full = float(2**bit_depth - 1)
-        if native is not None and native <= bit_depth:
+        if native is not None and native == bit_depth:
             return full  # the dtype cannot hold values out of range
         # torch's uint16 lacks min/max; int64 holds every other integer dtype's values.
         raw = raw.to(torch.int64)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -11,7 +12,8 @@ from polargs_plugin.io import PolarInputError
 if TYPE_CHECKING:
     from polargs_plugin.types import View
 
-__all__ = ["ReaderOptions", "Dataset", "load_dataset", "options_from_record", "SYNTHETIC_PREFIX", "PATTERNS"]
+__all__ = ["ReaderOptions", "Dataset", "load_dataset", "dataset_location", "options_from_record", "SYNTHETIC_PREFIX",
+           "PATTERNS"]
 
 #: ``synthetic:NAME`` names a bundled scene, rendered on the fly (24 views, 128x128).
 SYNTHETIC_PREFIX = "synthetic:"
@@ -153,6 +155,12 @@ def _load_synthetic(spec: str, options: ReaderOptions) -> Dataset:
         raise PolarInputError(spec, f"unknown synthetic scene '{name}' (known: {', '.join(SCENE_NAMES)})")
     views = generate_scene(name, num_views=24, width=128, height=128).views
     return Dataset(spec=spec, views=views, format="synthetic", options=options)
+
+
+def dataset_location(spec: str) -> str:
+    """How a run folder records its dataset: an absolute path (a relative one would name other
+    data when read from another folder), or ``synthetic:NAME`` as it is."""
+    return spec if spec.startswith(SYNTHETIC_PREFIX) else os.path.abspath(spec)
 
 
 def options_from_record(record: dict[str, Any]) -> ReaderOptions:

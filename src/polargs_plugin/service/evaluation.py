@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, Sequence
@@ -147,9 +148,9 @@ def _chamfer(mesh_path: Path, settings: EvalSettings, region: str, views: Sequen
             occluder=occluder, progress=step,
         )
         bar.update(bar.total - bar.n)
-    entry = {"chamfer": chamfer, "mesh": str(mesh_path), "gt": str(gt_path)}
+    entry = {"chamfer": chamfer, "mesh": os.path.abspath(mesh_path), "gt": os.path.abspath(gt_path)}
     if occluder is not None:
-        entry["occluder"] = str(occluder_path)
+        entry["occluder"] = os.path.abspath(occluder_path)
     return entry, gt, occluder
 
 
@@ -179,7 +180,7 @@ def evaluate(target: Path, settings: EvalSettings, run: Run | None = None, progr
         views = run.views
     if settings.views is not None:
         views = load_dataset(str(settings.views)).views
-    metrics: dict[str, Any] = {"target": str(target)}
+    metrics: dict[str, Any] = {"target": os.path.abspath(target)}  # valid from any folder
     gt = occluder = None
     if settings.gt is not None:
         entry, gt, occluder = _chamfer(target / MESH_NAME if is_run else target, settings, region, views, progress)

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
+
+from polargs_plugin.io import PolarInputError
 
 if TYPE_CHECKING:
     from polargs_plugin.types import View
 
-__all__ = ["FINGERPRINT_FORMAT", "fingerprint", "compare_fingerprints"]
+__all__ = ["FINGERPRINT_FORMAT", "fingerprint", "compare_fingerprints", "read_fingerprint"]
 
 FINGERPRINT_FORMAT = "polargs-data-fingerprint-v1"
 # Cameras must agree to this relative tolerance, the 8x8 thumbnails of s0 to this one.
@@ -77,3 +81,20 @@ def compare_fingerprints(stored: dict[str, Any], current: dict[str, Any]) -> str
     parts = [f"the {what} of {len(names)} of {len(new)} views ({_names(names)})"
              for what, names in (("cameras", cameras), ("images", images)) if names]
     return " and ".join(parts) + " differ from those this run was trained on"
+
+
+def read_fingerprint(path: Path) -> dict[str, Any] | None:
+    """A run's ``fingerprint.json``; None when it is missing (a run from before fingerprints).
+
+    Raises:
+        PolarInputError: naming the file when it cannot be read as a fingerprint.
+    """
+    if not path.is_file():
+        return None
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise PolarInputError(path, f"unreadable ({err}); delete it to go on without the data check") from None
+    if not isinstance(stored, dict) or not isinstance(stored.get("views"), list):
+        raise PolarInputError(path, "not a data fingerprint; delete it to go on without the data check")
+    return stored

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -118,7 +119,7 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
     if len(mesh.triangles) == 0:
         raise PolarInputError(source or "mesh", "the fused mesh is empty (check depth truncation, masks and alpha threshold)")
     info = {
-        "run_dir": source,
+        "run_dir": os.path.abspath(source) if source else source,
         "preset": settings.preset,
         **tsdf,
         "depth": settings.depth,

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.data import Dataset, load_dataset, options_from_record
+from polargs_plugin.service.fingerprints import compare_fingerprints, fingerprint, read_fingerprint
 
 if TYPE_CHECKING:
     from polargs_plugin.backends.reference.model import GaussianModel
@@ -69,11 +70,13 @@ def load_run(run_dir: str | Path) -> Run:
 
     The views come from the dataset named in ``summary.json``, read with the reader options the
     run recorded (re-rendered for ``synthetic:NAME``); the Gaussians from ``checkpoint.pt``,
-    whose view names must match the dataset's.
+    whose view names must match the dataset's, and the cameras and images those of the run's
+    ``fingerprint.json`` (when it has one).
 
     Raises:
         PolarInputError: naming the file: a missing or unreadable summary or checkpoint, or a
-            dataset whose views are not the ones the run was trained on.
+            dataset whose views are not the ones the run was trained on (other names, or other
+            cameras or images under the same names).
     """
     from polargs_plugin.backends.reference.model import GaussianModel
     from polargs_plugin.backends.reference.trainer import read_checkpoint
@@ -92,4 +95,16 @@ def load_run(run_dir: str | Path) -> Run:
     dataset = load_dataset(spec, options)
     if [v.name for v in dataset.views] != data["view_names"]:
         raise PolarInputError(checkpoint_path, f"was trained on other views than those of {spec}")
+    _check_same_data(run_dir / FINGERPRINT_NAME, spec, dataset)
     return Run(run_dir, GaussianModel.from_checkpoint(data["model"]), dataset, summary)
+
+
+def _check_same_data(path: Path, spec: str, dataset: Dataset) -> None:
+    """Refuse a dataset whose cameras or images are not those of the run's fingerprint.json (other
+    data under the same view names); a run without one (written before fingerprints) passes."""
+    stored = read_fingerprint(path)
+    if stored is None:
+        return
+    problem = compare_fingerprints(stored, fingerprint(dataset.views))
+    if problem is not None:
+        raise PolarInputError(path, f"{spec} is not the data this run was trained on: {problem}")

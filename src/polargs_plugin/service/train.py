@@ -12,16 +12,18 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
+import shutil
 import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
-from polargs_plugin.io import FolderLock, PolarInputError, atomic_write, check_writable
-from polargs_plugin.service.data import Dataset, ReaderOptions, load_dataset
-from polargs_plugin.service.fingerprints import compare_fingerprints, fingerprint
-from polargs_plugin.service.maps import prepare_maps_cache
+from polargs_plugin.io import FolderLock, PolarInputError, atomic_write, check_writable, remove_stale_temporaries
+from polargs_plugin.service.data import Dataset, ReaderOptions, dataset_location, load_dataset
+from polargs_plugin.service.fingerprints import compare_fingerprints, fingerprint, read_fingerprint
+from polargs_plugin.service.maps import MAPS_NAME, prepare_maps_cache
 from polargs_plugin.service.runs import CHECKPOINT_NAME, FINGERPRINT_NAME, LOCK_NAME, SUMMARY_NAME
 
 if TYPE_CHECKING:
@@ -184,13 +186,10 @@ def _check_resume_state(request: TrainRequest, checkpoint: Path) -> None:
 def _check_same_data(request: TrainRequest, prints: dict[str, Any], notify: Notify) -> None:
     """On ``resume``: refuse data other than the run's (its fingerprint.json)."""
     path = request.out / FINGERPRINT_NAME
-    if not path.is_file():
+    stored = read_fingerprint(path)
+    if stored is None:
         notify(f"note: {path}: missing (an older run); only the view names are checked")
         return
-    try:
-        stored = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise PolarInputError(path, f"unreadable ({err}); delete it to resume without the data check") from None
     problem = compare_fingerprints(stored, prints)
     if problem is not None:
         raise PolarInputError(path, f"--resume on other data than {request.dataset} was: {problem}; "
@@ -199,10 +198,44 @@ def _check_same_data(request: TrainRequest, prints: dict[str, Any], notify: Noti
 
 @dataclass
 class _Progress:
-    """Where a run is, for the cleanup of an error or an interruption."""
+    """Where a run is, for the cleanup of an error or an interruption.
+
+    Attributes:
+        stage: before, during or after training.
+        trainer: the trainer once built.
+        wrote_fingerprint: this run wrote fingerprint.json.
+        discarded: an error left nothing to resume, and what this run wrote was removed.
+    """
 
     stage: str = "before training started"
     trainer: Any = None
+    wrote_fingerprint: bool = False
+    discarded: bool = False
+
+
+def _discard_untrained(out: Path, checkpoint: Path, maps_existed: bool, progress: _Progress) -> bool:
+    """After an error: when there is no checkpoint to resume, remove what this run wrote (its
+    fingerprint.json, the maps/ cache it created) and return True; else keep everything."""
+    if checkpoint.is_file():
+        return False
+    if progress.wrote_fingerprint:
+        with contextlib.suppress(OSError):
+            (out / FINGERPRINT_NAME).unlink()
+    if not maps_existed:
+        shutil.rmtree(out / MAPS_NAME, ignore_errors=True)
+    progress.discarded = True
+    return True
+
+
+def _write_failed(err: OSError, out: Path, checkpoint: Path, discarded: bool) -> PolarInputError:
+    """A failed write or read (a full disk: :func:`~polargs_plugin.io.atomic_torch_save` reports
+    torch's too as OSError) as one line that says what is kept."""
+    problem = err.strerror or str(err)
+    if discarded:
+        problem += "; nothing of this run is kept"
+    elif checkpoint.is_file():
+        problem += f"; {checkpoint} keeps the last checkpoint (resume with --resume once there is room)"
+    return PolarInputError(err.filename or out, problem)
 
 
 def train_run(request: TrainRequest, notify: Notify = _ignore, stop: StopRequest | None = None) -> TrainResult:
@@ -215,15 +248,17 @@ def train_run(request: TrainRequest, notify: Notify = _ignore, stop: StopRequest
         stop: the stop request a signal handler sets (see :class:`StopRequest`).
 
     Raises:
-        PolarInputError: bad input, naming the file or setting; a folder this call created and
-            left unused is removed.
+        PolarInputError: bad input, naming the file or setting, or a failed write (a full disk),
+            naming the file and saying what is kept. When no checkpoint is left to resume,
+            what the run wrote (fingerprint.json, the maps/ it created, a folder it created) is
+            removed; an existing checkpoint is never touched.
         TrainingDiverged: a non-finite loss or parameter (the last periodic checkpoint stays).
         TrainingInterrupted: a stop request; the checkpoint to resume from is written when possible.
-        OSError: the file system failed (``filename`` names where).
     """
     out = Path(request.out)
     checkpoint = out / CHECKPOINT_NAME
     created = not out.exists()
+    maps_existed = (out / MAPS_NAME).exists()
     stop = stop or StopRequest()
     progress = _Progress()
     lock = None
@@ -233,19 +268,23 @@ def train_run(request: TrainRequest, notify: Notify = _ignore, stop: StopRequest
         lock.acquire()
         if lock.note:
             notify(f"note: {lock.note}")
+        for name in (CHECKPOINT_NAME, FINGERPRINT_NAME, SUMMARY_NAME):  # left by a writer killed mid-write
+            remove_stale_temporaries(out / name)
         _check_resume_state(request, checkpoint)
         dataset = load_dataset(request.dataset, request.reader)
         figures, every, start = _train(request, dataset, checkpoint, stop, progress, notify)
     except KeyboardInterrupt:
         raise _interrupted(request, stop, progress, checkpoint, created) from None
-    except PolarInputError:
-        if progress.stage == "before training started" and created:
-            _remove_if_empty(out)
-        raise
+    except (PolarInputError, OSError) as err:
+        # what this run wrote, never what the run of another process (holding the lock) did
+        discarded = lock is not None and lock.held and _discard_untrained(out, checkpoint, maps_existed, progress)
+        if isinstance(err, PolarInputError):
+            raise
+        raise _write_failed(err, out, checkpoint, discarded) from None
     finally:
         if lock is not None:
             lock.release()
-            if created and progress.stage == "before training started":
+            if created and (progress.stage == "before training started" or progress.discarded):
                 _remove_if_empty(out)
     summary = _summary(request, dataset, figures, every, time.perf_counter() - start)
     try:
@@ -271,7 +310,7 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
     polar = request.polar
     if polar is not None:
         cache = prepare_maps_cache(dataset.views, polar, request.out, request.maps_cache, request.dataset)
-        polar.cache_dir = str(cache.folder)
+        polar.cache_dir = os.path.abspath(cache.folder)  # recorded in summary.json: valid from any folder
     trainer = progress.trainer = build_trainer(dataset.views, request.train, polar)
     if polar is not None:
         notify(cache.describe())
@@ -283,7 +322,8 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
     fingerprint_path = request.out / FINGERPRINT_NAME
     if not request.resume or not fingerprint_path.is_file():
         with atomic_write(fingerprint_path) as handle:
-            json.dump({**prints, "dataset": request.dataset}, handle)
+            json.dump({**prints, "dataset": dataset_location(request.dataset)}, handle)
+        progress.wrote_fingerprint = True
     stop.arm(trainer)
     progress.stage = "during training"
     start = time.perf_counter()
@@ -296,8 +336,9 @@ def _summary(request: TrainRequest, dataset: Dataset, figures: dict[str, Any], e
              wall_seconds: float) -> dict[str, Any]:
     polar = request.polar
     labels = dict(request.labels)
+    config_file = labels.get("config_file")
     return {
-        "dataset": request.dataset,
+        "dataset": dataset_location(request.dataset),
         "dataset_format": dataset.format,
         "reader": dataset.record(),
         "num_views": len(dataset.views),
@@ -305,9 +346,9 @@ def _summary(request: TrainRequest, dataset: Dataset, figures: dict[str, Any], e
         "schedule": labels.get("schedule"),
         "preset": labels.get("preset") if polar is not None else None,
         "switches": list(labels.get("switches", [])),
-        "config_file": labels.get("config_file"),
+        "config_file": None if config_file is None else os.path.abspath(config_file),
         "resumed": bool(request.resume),
-        "checkpoint": str(request.out / CHECKPOINT_NAME),
+        "checkpoint": os.path.abspath(request.out / CHECKPOINT_NAME),
         "checkpoint_every": every,
         "maps_cache": None if polar is None else polar.cache_dir,
         "wall_seconds": wall_seconds,

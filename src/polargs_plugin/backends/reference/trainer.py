@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pickle
 import random
 import time
 from collections.abc import Iterator, Mapping
@@ -50,7 +51,7 @@ from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D
 from polargs_plugin.backends.reference.rasterizer import Backend
 from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
 from polargs_plugin.config import CPU_FACTOR, CheckedConfig, above, at_least, satisfies, within
-from polargs_plugin.io import PolarInputError, atomic_path
+from polargs_plugin.io import PolarInputError, atomic_torch_save, torch_error_line
 from polargs_plugin.losses import photometric_loss
 from polargs_plugin.threads import ThreadPolicy
 from polargs_plugin.types import GaussianState, RenderOut, TrainingHooks, View, validate_view
@@ -427,9 +428,7 @@ class Trainer:
                 "order": list(self._order),
             },
         }
-        with atomic_path(path) as tmp:
-            torch.save(data, tmp)
-        return path
+        return atomic_torch_save(data, path)
 
     def load_checkpoint(self, path: str | Path) -> None:
         """Restore a checkpoint written by :meth:`save_checkpoint` into this trainer.
@@ -479,13 +478,24 @@ def read_checkpoint(path: str | Path, map_location: torch.device | str = "cpu") 
     path = Path(path)
     if not path.is_file():
         raise PolarInputError(path, "checkpoint file not found")
+    if path.stat().st_size == 0:
+        raise PolarInputError(path, "not a checkpoint of this package (the file is empty)")
     try:
         data = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # truncated, not a torch file, or disallowed types
-        raise PolarInputError(path, f"cannot read checkpoint ({type(err).__name__}: {err})") from err
+        raise PolarInputError(path, f"not a checkpoint of this package ({_load_failure(err)})") from None
     if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
-        raise PolarInputError(path, f"not a {CHECKPOINT_FORMAT} file")
+        raise PolarInputError(path, f"not a checkpoint of this package (no \"format\": \"{CHECKPOINT_FORMAT}\" entry)")
     return data
+
+
+def _load_failure(err: Exception) -> str:
+    """Why torch could not read a file, in a few words. torch's own text for a weights-only
+    refusal advises loading the file with ``weights_only=False``, which runs whatever code an
+    untrusted file holds: it is never repeated."""
+    if isinstance(err, pickle.UnpicklingError) or "weights_only" in str(err):
+        return "torch cannot read it as plain tensors and containers"
+    return f"torch cannot read it: {torch_error_line(err)}"
 
 
 class StepLogs(Mapping):
