@@ -11,6 +11,8 @@
 # PyTorch's own index, which is not used here.
 #
 #   bash scripts/min_env.sh              # build or reuse the environment, run the tests
+#   bash scripts/min_env.sh --build      # build or reuse the environment only (CI starts this
+#                                        # in the background while the main suite runs)
 #   bash scripts/min_env.sh --pins       # print the pins only
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -49,6 +51,9 @@ if [ ! -f "$venv/.complete" ]; then
   touch "$venv/.complete"
 else
   echo "[test-min] reusing $venv"
+fi
+if [ "${1:-}" = "--build" ]; then
+  exit 0
 fi
 "$venv/bin/python" -c 'import torch, numpy, kornia, open3d, numba; print("[test-min] torch", torch.__version__, "numpy", numpy.__version__, "kornia", kornia.__version__, "open3d", open3d.__version__, "numba", numba.__version__)'
 
