@@ -260,7 +260,8 @@ def test_hooks_with_zero_gradient_do_not_change_base_training(views):
 
 def test_masked_target_uses_the_background(views):
     trainer = Trainer(views, _config(background=(0.2, 0.4, 0.6)))
-    v, t = trainer.views[0], trainer.targets[0]
+    v = trainer.views[0]
+    t = trainer.target(v)
     outside = ~v.mask[0]
     assert bool(outside.any())
     assert torch.allclose(t[:, outside], torch.tensor([0.2, 0.4, 0.6])[:, None].expand(3, int(outside.sum())))
@@ -277,15 +278,15 @@ def _square_mask_view(view: View, lo: int, hi: int) -> View:
 def test_mask_edge_band_is_the_ring_of_pixels_just_outside_the_mask(views, width):
     lo, hi = 8, 20  # a 12 x 12 square well inside the image
     trainer = Trainer([_square_mask_view(views[0], lo, hi)], _config(mask_edge_band=width))
-    band = trainer.edge_bands[0][0]
+    band = trainer.edge_band(trainer.views[0])[0]
     rows, cols = torch.meshgrid(torch.arange(SIZE), torch.arange(SIZE), indexing="ij")
     # Chebyshev distance to the square: 0 inside it
     dist = torch.maximum((lo - rows).clamp(min=0).maximum((rows - hi + 1).clamp(min=0)),
                          (lo - cols).clamp(min=0).maximum((cols - hi + 1).clamp(min=0)))
     assert torch.equal(band, (dist >= 1) & (dist <= width))
     assert int(band.sum()) == (12 + 2 * width) ** 2 - 12**2
-    assert Trainer(views, _config()).edge_bands == [None] * len(views)  # off by default
-    assert Trainer(views, _config(mask_edge_band=1, use_masks=False)).edge_bands == [None] * len(views)
+    assert Trainer(views, _config()).edge_band(views[0]) is None  # off by default
+    assert Trainer(views, _config(mask_edge_band=1, use_masks=False)).edge_band(views[0]) is None
     with pytest.raises(ValueError, match="mask_edge_band"):
         Trainer(views, _config(mask_edge_band=-1))
 
@@ -295,7 +296,7 @@ def test_mask_edge_band_pixels_give_the_colour_loss_no_gradient(views):
     loss: it equals the colour loss with the band's rendered pixels set to the target."""
     view = _square_mask_view(views[0], 6, 22)
     trainer = Trainer([view], _config(mask_edge_band=1))
-    band = trainer.edge_bands[0]
+    band = trainer.edge_band(trainer.views[0])
     colors: list[torch.Tensor] = []
     render = trainer.render
 
@@ -307,7 +308,7 @@ def test_mask_edge_band_pixels_give_the_colour_loss_no_gradient(views):
 
     trainer.render = keep_color
     logs = trainer.step()
-    color, target = colors[0], trainer.targets[0]
+    color, target = colors[0], trainer.target(trainer.views[0])
     grad = color.grad.abs().sum(0, keepdim=True)
     assert float(grad[band].max()) == 0.0
     differs = (color.detach() - target).abs().sum(0, keepdim=True) > 1e-3
@@ -334,7 +335,7 @@ def test_base_loss_is_vanilla_colour_loss_on_the_background_target(views):
     from polargs_plugin.losses import photometric_loss
 
     trainer = Trainer(views, _config(background=(0.2, 0.4, 0.6), ssim_weight=0.3))
-    pred, target = torch.rand(3, SIZE, SIZE), trainer.targets[0]
+    pred, target = torch.rand(3, SIZE, SIZE), trainer.target(trainer.views[0])
     ssim = kornia.metrics.ssim(pred[None], target[None], 11).mean()
     vanilla = 0.7 * (pred - target).abs().mean() + 0.3 * (1 - ssim)
     assert torch.allclose(trainer.base_loss(pred, target), vanilla, atol=1e-6)

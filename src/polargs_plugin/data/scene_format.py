@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import re
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -33,9 +34,11 @@ import open3d as o3d
 import torch
 from torch import Tensor
 
+from polargs_plugin.compact import AngleImages, Deferred
+from polargs_plugin.data.resolution import prepare_view, target_size
 from polargs_plugin.data.synthetic import SyntheticScene, mask_from_ranges, triangle_ranges
 from polargs_plugin.io import PolarInputError, atomic_path, atomic_write
-from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, stokes_from_intensities
+from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG
 from polargs_plugin.types import View
 
 __all__ = [
@@ -257,8 +260,8 @@ def _read_png(path: Path, what: str) -> np.ndarray:
     return image
 
 
-def _read_angles(folder: Path, name: str, header: dict) -> Tensor:
-    """(4, C, H, W) float32 angle images in [0, 1], validated."""
+def _read_angles(folder: Path, name: str, header: dict) -> AngleImages:
+    """The four angle images of a view as read (8/16-bit integers, (4, C, H, W)), validated."""
     images, first = [], None
     for angle in POLARIZER_ANGLES_DEG:
         path = _angle_path(folder, name, angle)
@@ -277,11 +280,12 @@ def _read_angles(folder: Path, name: str, header: dict) -> Tensor:
             )
         if image.max() == 0:
             raise PolarInputError(path, "image is all dark (every pixel 0)")
-        images.append(image.astype(np.float32) / np.iinfo(image.dtype).max)
+        images.append(image)
     stacked = np.stack(images)
     if stacked.ndim == 3:
         stacked = stacked[..., None]
-    return torch.from_numpy(np.ascontiguousarray(stacked.transpose(0, 3, 1, 2)))
+    angles = torch.from_numpy(np.ascontiguousarray(stacked.transpose(0, 3, 1, 2)))
+    return AngleImages(angles, np.iinfo(stacked.dtype).max)
 
 
 def _read_mask(path: Path, shape: tuple[int, int], what: str) -> Tensor:
@@ -306,45 +310,62 @@ def _read_npy(path: Path, shape: tuple[int, ...], what: str) -> Tensor:
     return tensor.permute(2, 0, 1).contiguous() if tensor.ndim == 3 else tensor.unsqueeze(0)
 
 
-def _read_views(folder: Path, header: dict) -> tuple[list[View], list[Tensor]]:
-    """The views of a validated header and their (4, C, H, W) angle images."""
+def _deferred_npy(path: Path, shape: tuple[int, ...], what: str) -> Deferred:
+    """A GT map left in its ``.npy`` file until read (:func:`_read_npy` then, which checks its
+    values); its shape and dtype are checked now from the file's header."""
+    try:
+        header = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise PolarInputError(path, f"unreadable {what} ({err})") from None
+    if header.shape != shape:
+        raise PolarInputError(path, f"{what} has shape {header.shape}, expected {shape}")
+    if not np.issubdtype(header.dtype, np.floating):
+        raise PolarInputError(path, f"{what} has dtype {header.dtype}, expected float")
+    channels = shape[2] if len(shape) == 3 else 1
+    return Deferred(partial(_read_npy, path, shape, what), (channels, *shape[:2]))
+
+
+def _read_views(folder: Path, header: dict, resolution: int = 1) -> list[View]:
+    """The views of a validated header, at ``resolution`` (:mod:`polargs_plugin.data.resolution`)."""
     cameras_path = folder / CAMERAS_FILE
     shape = (header["height"], header["width"])
-    views, angle_images = [], []
+    views = []
     for entry in header["views"]:
         name = entry["name"]
         K = _matrix(entry, "K", (3, 3), cameras_path, name)
         w2c = _matrix(entry, "world_to_camera", (4, 4), cameras_path, name)
         _check_camera(K, w2c, cameras_path, name)
-        angles = _read_angles(folder, name, header)
         mask_path, normal_path, depth_path = (
             folder / "masks" / f"{name}.png",
             folder / "normals" / f"{name}.npy",
             folder / "depth" / f"{name}.npy",
         )
-        views.append(
-            View(
-                name=name,
-                K=torch.from_numpy(K),
-                world_to_camera=torch.from_numpy(w2c),
-                stokes=stokes_from_intensities(angles),
-                mask=_read_mask(mask_path, shape, "mask") if mask_path.exists() else None,
-                normal_gt=_read_npy(normal_path, (*shape, 3), "GT normal map") if normal_path.exists() else None,
-                depth_gt=_read_npy(depth_path, shape, "GT depth map") if depth_path.exists() else None,
-                source=str(folder),
-            )
+        view = View(
+            name=name,
+            K=torch.from_numpy(K),
+            world_to_camera=torch.from_numpy(w2c),
+            stokes=_read_angles(folder, name, header),
+            mask=_read_mask(mask_path, shape, "mask") if mask_path.exists() else None,
+            normal_gt=_deferred_npy(normal_path, (*shape, 3), "GT normal map") if normal_path.exists() else None,
+            depth_gt=_deferred_npy(depth_path, shape, "GT depth map") if depth_path.exists() else None,
+            source=str(folder),
         )
-        angle_images.append(angles)
-    return views, angle_images
+        views.append(prepare_view(view, resolution))
+    return views
 
 
-def read_scene_folder(folder: str | Path) -> list[View]:
+def read_scene_folder(folder: str | Path, resolution: int = 1) -> list[View]:
     """Read a scene folder into :class:`View` objects (Stokes from the angle images).
 
-    Masks, GT normals and GT depth are loaded when their files exist.
+    Masks, GT normals and GT depth are loaded when their files exist. The views keep the
+    integer angle images (their Stokes are decoded from them on each read, bit for bit the
+    float32 Stokes of the images); the GT maps stay in their files until read, their headers
+    checked now and their values when read (:mod:`polargs_plugin.compact`).
 
     Args:
         folder: the scene folder.
+        resolution: read at this resolution (1, 2, 4, 8 divide the size, above 8: a target
+            width; :mod:`polargs_plugin.data.resolution`).
 
     Returns:
         the views in ``cameras.json`` order; K and world_to_camera float64, stokes (3, C, H, W)
@@ -355,7 +376,16 @@ def read_scene_folder(folder: str | Path) -> list[View]:
             an all-dark angle image, NaN/inf in a GT map, or non-finite/singular cameras.
     """
     folder = Path(folder)
-    return _read_views(folder, _read_header(folder))[0]
+    header = _read_header(folder)
+    _check_resolution(folder / CAMERAS_FILE, header, resolution)
+    return _read_views(folder, header, resolution)
+
+
+def _check_resolution(path: Path, header: dict, resolution: int) -> None:
+    try:
+        target_size(header["width"], header["height"], resolution)
+    except ValueError as err:
+        raise PolarInputError(path, f"--resolution: {err}") from None
 
 
 def read_gt_mesh(folder: str | Path, object_only: bool = True) -> o3d.geometry.TriangleMesh:
@@ -392,7 +422,8 @@ def read_scene(folder: str | Path) -> SyntheticScene:
     """
     folder = Path(folder)
     header = _read_header(folder)
-    views, angle_images = _read_views(folder, header)
+    views = _read_views(folder, header)
+    angle_images = [view.stored("stokes").intensities() for view in views]
     shape = (header["height"], header["width"])
     meta_path = folder / META_FILE
     try:
