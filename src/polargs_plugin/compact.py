@@ -131,16 +131,13 @@ class AngleImages:
         full_scale: the level of full intensity (255, 65535, or 2^bits - 1).
     """
 
-    __slots__ = ("angles", "full_scale")
+    __slots__ = ("angles", "full_scale", "shape")
 
     def __init__(self, angles: Tensor, full_scale: float):
         if angles.ndim != 4 or angles.shape[0] != 4 or angles.is_floating_point():
             raise ValueError(f"AngleImages needs (4, C, H, W) integer images, got {angles.dtype} {tuple(angles.shape)}")
         self.angles, self.full_scale = angles, float(full_scale)
-
-    @property
-    def shape(self) -> torch.Size:
-        return torch.Size((3, *self.angles.shape[1:]))
+        self.shape = torch.Size((3, *angles.shape[1:]))  # of the decoded Stokes
 
     @property
     def dtype(self) -> torch.dtype:

@@ -224,6 +224,9 @@ class MapsStore(Mapping[str, PolarMaps]):
             raise KeyError(name)
         return expand_maps(self.compact(name), self._devices[name])
 
+    def __contains__(self, name: object) -> bool:  # without decoding (Mapping's would)
+        return name in self._devices
+
     def __iter__(self) -> Iterator[str]:
         return iter(self._devices)
 

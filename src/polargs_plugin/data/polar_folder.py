@@ -74,7 +74,7 @@ from polargs_plugin.optics.pattern import (
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, intensities_from_stokes, stokes_from_intensities
 from polargs_plugin.types import View
 
-__all__ = ["read_polar_folder", "write_polar_folder"]
+__all__ = ["read_polar_folder", "write_polar_folder", "PolarFolderWriter"]
 
 _IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 _RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
@@ -371,32 +371,55 @@ def write_polar_folder(
     Returns:
         ``folder``.
     """
-    if mode not in ("angles", "raw"):
-        raise ValueError(f"mode must be 'angles' or 'raw', got {mode!r}")
-    if mode == "raw" and pattern not in MOSAIC_PATTERNS:
-        raise ValueError(f"pattern must be one of {MOSAIC_PATTERNS}, got {pattern!r}")
-    folder = Path(folder)
-    model = {}
+    writer = PolarFolderWriter(folder, mode, pattern, bit_depth, per_angle_folders)
     for index, view in enumerate(views):
-        given = angle_images[index] if angle_images is not None else None
-        if given is None:
+        writer.add(view, angle_images[index] if angle_images is not None else None)
+    return writer.finish()
+
+
+class PolarFolderWriter:
+    """Writes a polar folder view by view (:func:`write_polar_folder` in parts); arguments as there.
+
+    :meth:`finish` writes the COLMAP model of the views added (or, with ``cameras=False``,
+    leaves it out, for SfM to build).
+    """
+
+    def __init__(self, folder: str | os.PathLike, mode: str = "angles", pattern: str = "rgb", bit_depth: int = 16,
+                 per_angle_folders: bool = False):
+        if mode not in ("angles", "raw"):
+            raise ValueError(f"mode must be 'angles' or 'raw', got {mode!r}")
+        if mode == "raw" and pattern not in MOSAIC_PATTERNS:
+            raise ValueError(f"pattern must be one of {MOSAIC_PATTERNS}, got {pattern!r}")
+        self.folder, self.mode, self.pattern, self.bit_depth = Path(folder), mode, pattern, bit_depth
+        self.per_angle_folders = per_angle_folders
+        self.model: dict[str, ColmapCamera] = {}
+
+    def add(self, view: View, angle_images: torch.Tensor | None = None) -> None:
+        """Write one view (its ``angle_images`` as they are, or the Malus images of its Stokes)."""
+        folder = self.folder
+        if angle_images is None:
             # Malus; clipping only matters where the views' Stokes come from saturated images
             intensities = intensities_from_stokes(view.stokes.detach().cpu().double()).clamp(0, 1)
         else:
-            intensities = given.detach().cpu().double()
-            if intensities.shape != (4, *view.stokes.shape[1:]):
-                raise ValueError(f"angle_images[{index}] has shape {tuple(intensities.shape)}, expected (4, C, H, W)")
-        if mode == "raw":
-            raw = mosaic_from_intensities(intensities, pattern)
-            write_png(folder / "raw" / f"{view.name}.png", np.asarray(raw, dtype=np.float64), bit_depth)
+            intensities = angle_images.detach().cpu().double()
+            if intensities.shape != (4, view.channels, view.height, view.width):
+                raise ValueError(f"angle images of view {view.name} have shape {tuple(intensities.shape)}, "
+                                 "expected (4, C, H, W)")
+        if self.mode == "raw":
+            raw = mosaic_from_intensities(intensities, self.pattern)
+            write_png(folder / "raw" / f"{view.name}.png", np.asarray(raw, dtype=np.float64), self.bit_depth)
         else:
             for angle, image in zip(_ANGLE_NAMES, intensities):
-                name = f"{angle}/{view.name}.png" if per_angle_folders else f"{view.name}_{angle}.png"
-                write_png(folder / "images" / name, to_hwc(image), bit_depth)
+                name = f"{angle}/{view.name}.png" if self.per_angle_folders else f"{view.name}_{angle}.png"
+                write_png(folder / "images" / name, to_hwc(image), self.bit_depth)
         if view.mask is not None:
             write_png(folder / "masks" / f"{view.name}.png", view.mask[0].cpu().numpy().astype(np.uint8) * 255, 8)
-        model[f"{view.name}.png"] = ColmapCamera(
+        self.model[f"{view.name}.png"] = ColmapCamera(
             view.K.double().cpu().numpy(), view.world_to_camera.double().cpu().numpy(), view.width, view.height
         )
-    write_colmap_text(folder / "sparse" / "0", model)
-    return folder
+
+    def finish(self, cameras: bool = True) -> Path:
+        """Write the COLMAP model ``sparse/0`` of the views added (unless ``cameras`` is False); the folder."""
+        if cameras:
+            write_colmap_text(self.folder / "sparse" / "0", self.model)
+        return self.folder

@@ -46,6 +46,8 @@ __all__ = [
     "FORMAT_VERSION",
     "CAMERAS_FILE",
     "write_scene",
+    "SceneWriter",
+    "write_meshes",
     "read_scene_folder",
     "read_scene",
     "read_gt_mesh",
@@ -107,38 +109,86 @@ def write_scene(scene: SyntheticScene, folder: str | Path) -> Path:
     Returns:
         the folder path.
     """
+    writer = SceneWriter(folder, int(scene.meta.get("quantize_bits", 16)))
+    writer.add(scene)
+    return writer.finish(scene)
+
+
+class SceneWriter:
+    """Writes a scene folder view by view (:func:`write_scene` in parts, e.g. for views rendered
+    one at a time by :func:`~polargs_plugin.data.synthetic.generate_scene_views`).
+
+    Args:
+        folder: output folder (created; existing files with the same names are replaced).
+        bits: bit depth of the angle images, 8 or 16.
+    """
+
+    def __init__(self, folder: str | Path, bits: int):
+        if bits not in (8, 16):
+            raise ValueError(f"quantize_bits must be 8 or 16 to write PNG angle images, got {bits}")
+        self.folder, self.bits = Path(folder), bits
+        self.size: tuple[int, int] | None = None  # (H, W) of the first view
+        self.cameras: list[dict] = []
+
+    def add(self, scene: SyntheticScene) -> None:
+        """Write the files of every view of ``scene`` (all views share one size)."""
+        folder = self.folder
+        dtype, levels = (np.uint8, 255) if self.bits == 8 else (np.uint16, 65535)
+        for index, view in enumerate(scene.views):
+            self.size = self.size or (view.height, view.width)
+            if (view.height, view.width) != self.size:
+                raise ValueError(f"view {view.name} is {view.width}x{view.height}, expected {self.size[1]}x{self.size[0]}")
+            for angle, image in zip(POLARIZER_ANGLES_DEG, scene.angle_images[index]):
+                pixels = np.round(np.clip(_hwc(image), 0.0, 1.0) * levels).astype(dtype)
+                _write_png(_angle_path(folder, view.name, angle), pixels)
+            if view.mask is not None:
+                _write_png(folder / "masks" / f"{view.name}.png", _mask_png(view.mask))
+            if view.normal_gt is not None:
+                _write_npy(folder / "normals" / f"{view.name}.npy", _hwc(view.normal_gt))
+            if view.depth_gt is not None:
+                _write_npy(folder / "depth" / f"{view.name}.npy", view.depth_gt[0].numpy())
+            _write_npy(folder / "diffuse" / f"{view.name}.npy", _hwc(scene.diffuse_gt[index]))
+            _write_npy(folder / "specular" / f"{view.name}.npy", _hwc(scene.specular_gt[index]))
+            _write_png(folder / "highlights" / f"{view.name}.png", _mask_png(scene.highlight_masks[index]))
+            _write_png(folder / "overexposed" / f"{view.name}.png", _mask_png(scene.overexposed_masks[index]))
+            self.cameras.append(
+                {
+                    "name": view.name,
+                    "K": view.K.to(torch.float64).tolist(),
+                    "world_to_camera": view.world_to_camera.to(torch.float64).tolist(),
+                }
+            )
+
+    def finish(self, scene: SyntheticScene) -> Path:
+        """Write the meshes and the meta of ``scene``, then ``cameras.json`` (last: a folder that
+        has it is complete); the folder path."""
+        if self.size is None:
+            raise ValueError("the scene has no views")
+        write_meshes(scene, self.folder)
+        with atomic_write(self.folder / META_FILE) as handle:
+            meta = {"name": scene.name, **scene.meta}
+            if scene.object_triangles is not None:
+                meta["object_triangles"] = triangle_ranges(scene.object_triangles)
+            json.dump(meta, handle, indent=2)
+        header = {
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "width": self.size[1],
+            "height": self.size[0],
+            "bit_depth": self.bits,
+            "angles_deg": list(POLARIZER_ANGLES_DEG),
+            "color": "RGB",
+            "views": self.cameras,
+        }
+        with atomic_write(self.folder / CAMERAS_FILE) as handle:
+            json.dump(header, handle, indent=1)
+        return self.folder
+
+
+def write_meshes(scene: SyntheticScene, folder: str | Path) -> None:
+    """The scene's whole mesh as ``mesh.ply`` and the object alone as ``gt_mesh.ply`` (the
+    evaluation ground truth), each written atomically."""
     folder = Path(folder)
-    bits = int(scene.meta.get("quantize_bits", 16))
-    if bits not in (8, 16):
-        raise ValueError(f"quantize_bits must be 8 or 16 to write PNG angle images, got {bits}")
-    dtype, levels = (np.uint8, 255) if bits == 8 else (np.uint16, 65535)
-    if not scene.views:
-        raise ValueError("the scene has no views")
-    height, width = scene.views[0].height, scene.views[0].width
-    cameras = []
-    for index, view in enumerate(scene.views):
-        if (view.height, view.width) != (height, width):
-            raise ValueError(f"view {view.name} is {view.width}x{view.height}, expected {width}x{height}")
-        for angle, image in zip(POLARIZER_ANGLES_DEG, scene.angle_images[index]):
-            pixels = np.round(np.clip(_hwc(image), 0.0, 1.0) * levels).astype(dtype)
-            _write_png(_angle_path(folder, view.name, angle), pixels)
-        if view.mask is not None:
-            _write_png(folder / "masks" / f"{view.name}.png", _mask_png(view.mask))
-        if view.normal_gt is not None:
-            _write_npy(folder / "normals" / f"{view.name}.npy", _hwc(view.normal_gt))
-        if view.depth_gt is not None:
-            _write_npy(folder / "depth" / f"{view.name}.npy", view.depth_gt[0].numpy())
-        _write_npy(folder / "diffuse" / f"{view.name}.npy", _hwc(scene.diffuse_gt[index]))
-        _write_npy(folder / "specular" / f"{view.name}.npy", _hwc(scene.specular_gt[index]))
-        _write_png(folder / "highlights" / f"{view.name}.png", _mask_png(scene.highlight_masks[index]))
-        _write_png(folder / "overexposed" / f"{view.name}.png", _mask_png(scene.overexposed_masks[index]))
-        cameras.append(
-            {
-                "name": view.name,
-                "K": view.K.to(torch.float64).tolist(),
-                "world_to_camera": view.world_to_camera.to(torch.float64).tolist(),
-            }
-        )
     for name, (vertices, triangles) in (
         (MESH_FILE, (scene.mesh_vertices, scene.mesh_triangles)),
         (GT_MESH_FILE, scene.object_mesh()),
@@ -150,24 +200,6 @@ def write_scene(scene: SyntheticScene, folder: str | Path) -> Path:
         with atomic_path(folder / name) as tmp:
             if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
                 raise OSError(f"{folder / name}: open3d could not write the mesh")
-    with atomic_write(folder / META_FILE) as handle:
-        meta = {"name": scene.name, **scene.meta}
-        if scene.object_triangles is not None:
-            meta["object_triangles"] = triangle_ranges(scene.object_triangles)
-        json.dump(meta, handle, indent=2)
-    header = {
-        "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
-        "width": width,
-        "height": height,
-        "bit_depth": bits,
-        "angles_deg": list(POLARIZER_ANGLES_DEG),
-        "color": "RGB",
-        "views": cameras,
-    }
-    with atomic_write(folder / CAMERAS_FILE) as handle:
-        json.dump(header, handle, indent=1)
-    return folder
 
 
 # ---------------------------------------------------------------------------------------------

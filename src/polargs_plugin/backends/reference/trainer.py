@@ -67,6 +67,10 @@ class TrainingDiverged(RuntimeError):
 
 
 CPU_EPS2D = 0.1  # the CPU preset's screen dilation (pixels^2), TrainConfig.cpu
+# The progress bar's remaining time comes from the rate averaged over the last ~1/this iterations
+# (tqdm's smoothing): long enough to spread the periodic Dense calls, short enough to follow the
+# model's growth.
+_RATE_SMOOTHING = 0.01
 
 
 def _is_torch_device(name: str, config: Any) -> bool:
@@ -226,6 +230,8 @@ class Trainer:
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         for view in self.views:
             _check_channels(view)
+        # one byte a pixel, so kept; the targets (12 bytes a pixel) are built when used
+        self.edge_bands = [self.edge_band(v) for v in self.views]
         factor = cfg.schedule_scale
         self.sh_interval = max(1, round(cfg.sh_increase_every * factor))
         lrs = dataclasses.replace(cfg.lrs, means_max_steps=max(1, round(cfg.lrs.means_max_steps * factor)))
@@ -309,8 +315,9 @@ class Trainer:
         model.update_learning_rate(it)
         if it % self.sh_interval == 0:
             model.active_sh_degree = min(model.active_sh_degree + 1, model.max_sh_degree)
-        view = self.views[self._next_view()]
-        target, band = self.target(view), self.edge_band(view)
+        index = self._next_view()
+        view, band = self.views[index], self.edge_bands[index]
+        target = self.target(view)
 
         # The hooks get the activations the render used (one set of activation nodes to differentiate).
         state = model.state() if self.hooks is not None else None
@@ -346,6 +353,20 @@ class Trainer:
         self.last_logs = logs
         return logs
 
+    def time_step(self, view: View, repeats: int = 2) -> float:
+        """Seconds of the cheapest of ``repeats`` renders of ``view`` with the colour loss and its
+        backward, on the current model, which is left as it was (the gradients are dropped; no
+        optimizer step, no density statistics, no random numbers drawn). The first repeat also
+        pays for compiling and warming what the step uses."""
+        best = math.inf
+        for _ in range(max(1, repeats)):
+            start = time.perf_counter()
+            render = self.render(view)
+            self.base_loss(render.color, self.target(view)).backward()
+            best = min(best, time.perf_counter() - start)
+            self.model.optimizer.zero_grad(set_to_none=True)
+        return best
+
     def train(self, until: int | None = None, checkpoint: str | Path | None = None, checkpoint_every: int = 0) -> dict[str, Any]:
         """Train up to iteration ``until`` (default ``config.iterations``).
 
@@ -371,6 +392,7 @@ class Trainer:
             unit="it",
             disable=not self.config.progress,
             dynamic_ncols=True,
+            smoothing=_RATE_SMOOTHING,
         )
         with bar:
             while self.iteration < end:
