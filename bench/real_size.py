@@ -25,7 +25,8 @@ from ``polargs`` commands in child processes (their own peak memory and CPU time
 
 The table gives each figure with its target; the last line is one JSON object. Runs take hours on
 a shared 2-core machine: start it under ``nice`` and read the load beside the figures (printed
-at the start and the end). ``--only`` picks sections (scenes, step, dense, runs, large, raw).
+at the start and the end). ``--only`` picks sections (step, dense, runs, large, raw; the scenes they
+read are generated first).
 
     .venv/bin/python bench/real_size.py --cache ~/.cache/polargs-bench          # everything
     .venv/bin/python bench/real_size.py --only step,dense                       # minutes
@@ -44,7 +45,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-SECTIONS = ("scenes", "step", "dense", "runs", "large", "raw")
+SECTIONS = ("step", "dense", "runs", "large", "raw")
 SCENE = "bumpy_mixed"
 TARGETS = {"bytes_per_pixel": 40.0, "base_minutes": 30.0, "full_minutes": 40.0, "large_peak_gb": 6.0}
 
@@ -141,15 +142,18 @@ def scene_folder(bench: Bench, size: tuple[int, int, int], mosaic: bool = False)
     return bench.cache / (f"{SCENE}-{views}v-{width}x{height}" + ("-raw" if mosaic else ""))
 
 
-def make_scenes(bench: Bench) -> None:
+def make_scenes(bench: Bench, sections: list[str]) -> None:
+    """Generate the scenes the ``sections`` read (those missing from the cache)."""
     sizes = bench.sizes
-    for size in (sizes.real, sizes.large, sizes.step_reference, sizes.base):
+    needed = {"step": [sizes.real, sizes.step_reference], "dense": [sizes.real, sizes.step_reference],
+              "runs": [sizes.real, sizes.base], "large": [sizes.large]}
+    for size in dict.fromkeys(size for name in sections for size in needed.get(name, [])):
         folder = scene_folder(bench, size)
         if not folder.is_dir():
             polargs(bench, "generate", "--scene", SCENE, "--views", str(size[0]), "--size", f"{size[1]}x{size[2]}",
                     "--out", str(folder), log=f"generate-{folder.name}.log")
     raw = scene_folder(bench, sizes.raw, mosaic=True)
-    if not raw.is_dir():
+    if "raw" in sections and not raw.is_dir():
         polargs(bench, "generate", "--scene", SCENE, "--views", str(sizes.raw[0]), "--size",
                 f"{sizes.raw[1]}x{sizes.raw[2]}", "--mosaic", "rgb", "--bits", "16", "--out", str(raw),
                 log=f"generate-{raw.name}.log")
@@ -362,7 +366,7 @@ def main() -> None:
     bench = Bench(args.cache, sizes, args.threads, env)
     (bench.cache / "logs").mkdir(parents=True, exist_ok=True)
     load_start = _load()
-    make_scenes(bench)
+    make_scenes(bench, sections)
     measures = {
         "step": lambda: measure_steps(bench),
         "dense": lambda: measure_dense(bench),
@@ -373,7 +377,8 @@ def main() -> None:
     for name, measure in measures.items():  # the quick sections first, the whole runs last
         if name in sections:
             measure()
-            (bench.cache / "figures.json").write_text(json.dumps(bench.figures, indent=1))  # kept if a later one fails
+            # kept if a later section fails (named by the sections, so that two benches can share a cache)
+            (bench.cache / f"figures-{'-'.join(sections)}.json").write_text(json.dumps(bench.figures, indent=1))
     report(bench, load_start)
 
 

@@ -184,7 +184,8 @@ def estimate_memory(views: Sequence[View], train: TrainConfig, polar: PolarConfi
 
     Args:
         views: the training views (read: their images are held).
-        train, polar: the settings (``polar`` None: Base).
+        train: the trainer's settings.
+        polar: the PolarGS settings (None: Base).
         held: the process's resident memory now (default: measured).
         available: the memory the system can still give (default -1: measured; None: unknown).
     """
