@@ -41,12 +41,8 @@ HALF_MAX = 65504.0
 HALF_RELATIVE_ERROR = 2.0**-11
 
 
-class Plain:
-    """A tensor kept as it is; :meth:`decode` returns that same tensor (no copy).
-
-    Attributes:
-        values: the tensor.
-    """
+class _Held:
+    """A tensor held in memory as it is stored (what :class:`Plain` and :class:`Half` share)."""
 
     __slots__ = ("values",)
 
@@ -58,10 +54,6 @@ class Plain:
         return self.values.shape
 
     @property
-    def dtype(self) -> torch.dtype:
-        return self.values.dtype
-
-    @property
     def device(self) -> torch.device:
         return self.values.device
 
@@ -69,17 +61,31 @@ class Plain:
     def nbytes(self) -> int:
         return self.values.numel() * self.values.element_size()
 
-    def decode(self) -> Tensor:
-        return self.values
-
     def all_finite(self) -> bool:
         return not self.values.is_floating_point() or bool(torch.isfinite(self.values).all())
+
+
+class Plain(_Held):
+    """A tensor kept as it is; :meth:`decode` returns that same tensor (no copy).
+
+    Attributes:
+        values: the tensor.
+    """
+
+    __slots__ = ()
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.values.dtype
+
+    def decode(self) -> Tensor:
+        return self.values
 
     def to(self, device: torch.device | str) -> Plain:
         return Plain(self.values.to(device))
 
 
-class Half:
+class Half(_Held):
     """Float data stored as float16, decoded to ``dtype`` (default float32).
 
     Attributes:
@@ -87,34 +93,20 @@ class Half:
         decoded_dtype: the dtype :meth:`decode` returns.
     """
 
-    __slots__ = ("decoded_dtype", "values")
+    __slots__ = ("decoded_dtype",)
 
     def __init__(self, values: Tensor, decoded_dtype: torch.dtype = torch.float32):
         if values.dtype != torch.float16:
             raise TypeError(f"Half holds float16 values, got {values.dtype}")
-        self.values, self.decoded_dtype = values, decoded_dtype
-
-    @property
-    def shape(self) -> torch.Size:
-        return self.values.shape
+        super().__init__(values)
+        self.decoded_dtype = decoded_dtype
 
     @property
     def dtype(self) -> torch.dtype:
         return self.decoded_dtype
 
-    @property
-    def device(self) -> torch.device:
-        return self.values.device
-
-    @property
-    def nbytes(self) -> int:
-        return self.values.numel() * 2
-
     def decode(self) -> Tensor:
         return self.values.to(self.decoded_dtype)
-
-    def all_finite(self) -> bool:
-        return bool(torch.isfinite(self.values).all())
 
     def to(self, device: torch.device | str) -> Half:
         return Half(self.values.to(device), self.decoded_dtype)

@@ -327,15 +327,21 @@ def _read_mask(path: Path, shape: tuple[int, int], what: str) -> Tensor:
     return torch.from_numpy(image > 0).unsqueeze(0)
 
 
-def _read_npy(path: Path, shape: tuple[int, ...], what: str) -> Tensor:
+def _open_npy(path: Path, shape: tuple[int, ...], what: str, mmap: bool = False) -> np.ndarray:
+    """The array of a GT ``.npy`` file, its shape and dtype checked (``mmap``: its header only is read now)."""
     try:
-        array = np.load(path, allow_pickle=False)
+        array = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (OSError, ValueError) as err:
         raise PolarInputError(path, f"unreadable {what} ({err})") from None
     if array.shape != shape:
         raise PolarInputError(path, f"{what} has shape {array.shape}, expected {shape}")
     if not np.issubdtype(array.dtype, np.floating):
         raise PolarInputError(path, f"{what} has dtype {array.dtype}, expected float")
+    return array
+
+
+def _read_npy(path: Path, shape: tuple[int, ...], what: str) -> Tensor:
+    array = _open_npy(path, shape, what)
     if not np.isfinite(array).all():
         raise PolarInputError(path, f"{what} has NaN or infinite values")
     tensor = torch.from_numpy(array.astype(np.float32))
@@ -345,14 +351,7 @@ def _read_npy(path: Path, shape: tuple[int, ...], what: str) -> Tensor:
 def _deferred_npy(path: Path, shape: tuple[int, ...], what: str) -> Deferred:
     """A GT map left in its ``.npy`` file until read (:func:`_read_npy` then, which checks its
     values); its shape and dtype are checked now from the file's header."""
-    try:
-        header = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise PolarInputError(path, f"unreadable {what} ({err})") from None
-    if header.shape != shape:
-        raise PolarInputError(path, f"{what} has shape {header.shape}, expected {shape}")
-    if not np.issubdtype(header.dtype, np.floating):
-        raise PolarInputError(path, f"{what} has dtype {header.dtype}, expected float")
+    _open_npy(path, shape, what, mmap=True)
     channels = shape[2] if len(shape) == 3 else 1
     return Deferred(partial(_read_npy, path, shape, what), (channels, *shape[:2]))
 
