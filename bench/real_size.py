@@ -30,7 +30,7 @@ read are generated first).
 
     .venv/bin/python bench/real_size.py --cache ~/.cache/polargs-bench          # everything
     .venv/bin/python bench/real_size.py --only step,dense                       # minutes
-    .venv/bin/python bench/real_size.py --quick --cache /tmp/rs                 # a check that it runs
+    .venv/bin/python bench/real_size.py --quick --cache out/rs-quick            # a check that it runs
 """
 
 from __future__ import annotations

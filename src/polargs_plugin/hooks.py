@@ -39,7 +39,9 @@ from torch import Tensor
 
 from polargs_plugin.config import PolarConfig
 from polargs_plugin.correction import compute_polar_maps, input_range, physical_stokes
-from polargs_plugin.correction.store import MEMORY_BUDGET, BytesLRU, MapsStore, maps_cache_file, maps_cache_key, tensor_bytes
+from polargs_plugin.correction.store import (
+    MEMORY_BUDGET, BytesLRU, MapsStore, maps_cache_file, maps_cache_key, tensor_bytes,
+)
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, normals_within, scale_loss
 from polargs_plugin.types import (
@@ -47,6 +49,7 @@ from polargs_plugin.types import (
 )
 
 __all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]  # the cache's key and file: correction.store
+
 
 def _check_shape(where: str, argument: str, tensor: Any, expected: tuple[int, ...], view: View) -> None:
     """Raise ValueError naming ``argument`` when ``tensor`` does not have shape ``expected``."""
