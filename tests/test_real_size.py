@@ -314,13 +314,27 @@ def test_the_estimate_refuses_in_one_line_and_names_the_resolution_that_fits(sce
     tight = estimates.estimate_memory(views, train, polar, held=500 << 20, available=reach - (500 << 20))
     assert not tight.fits
     line = tight.refusal()
-    assert line.startswith("--resolution: training would need about") and "--resolution 2 (about" in line
+    assert line.startswith("--resolution: training would need about") and " of memory (" in line
+    assert "--resolution 2 (about" in line
     assert "\n" not in line
     hopeless = estimates.estimate_memory(views, train, polar, held=500 << 20, available=0)
     assert "--resolution (8, or a target width) or use fewer views" in hopeless.refusal()
     unknown = estimates.estimate_memory(views, train, None, held=500 << 20, available=None)
     assert unknown.fits and unknown.dense_calls == 0
     assert estimates.dense_calls(polar, 1000) == 11  # 500, 550, ..., 1000
+
+
+def test_a_cuda_training_is_estimated_against_the_gpus_memory(scene_folder, monkeypatch):
+    from polargs_plugin.service import train_config
+
+    views = load_dataset(str(scene_folder)).views
+    asked = []
+    monkeypatch.setattr(estimates, "device_memory", lambda device: asked.append(device) or (100 << 20, 1 << 20))
+    estimate = estimates.estimate_memory(views, train_config("cpu", device="cuda:0"), None)
+    images = sum(v.nbytes for v in views)
+    assert asked == ["cuda:0"] and estimate.memory == "GPU memory"
+    assert estimate.held_bytes == (100 << 20) + images and estimate.reach_bytes == (101 << 20)
+    assert not estimate.fits and "of GPU memory" in estimate.refusal()
 
 
 def test_train_refuses_what_does_not_fit_before_anything_is_written(scene_folder, tmp_path, monkeypatch, capsys):

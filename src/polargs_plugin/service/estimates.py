@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from polargs_plugin.types import View
 
 __all__ = ["RunEstimate", "estimate_memory", "estimate_time", "available_memory", "resident_memory", "peak_memory",
-           "dense_calls"]
+           "device_memory", "dense_calls"]
 
 #: Bytes per pixel of the largest view that one Base step allocates (render, loss, backward).
 STEP_BYTES_PER_PIXEL = 450
@@ -65,6 +65,8 @@ class RunEstimate:
             not timed yet).
         seconds: expected training wall time (None: not timed yet).
         dense_calls: Dense calls of the schedule.
+        memory: which memory the figures are of: ``"memory"`` (the host's) or ``"GPU memory"``
+            (a CUDA training: the views, a step's and Dense's buffers live there).
     """
 
     views: int
@@ -78,6 +80,7 @@ class RunEstimate:
     step_seconds: float | None = None
     seconds: float | None = None
     dense_calls: int = 0
+    memory: str = "memory"
 
     @property
     def reach_bytes(self) -> int | None:
@@ -96,8 +99,8 @@ class RunEstimate:
 
     def memory_line(self) -> str:
         reach = "" if self.reach_bytes is None else f", {_gb(self.reach_bytes)} within reach"
-        return (f"estimate: peak memory about {_gb(self.peak_bytes)} ({self.views} views of {self.size[0]}x{self.size[1]}, "
-                f"{_gb(self.image_bytes)} of images held{reach})")
+        return (f"estimate: peak {self.memory} about {_gb(self.peak_bytes)} ({self.views} views of {self.size[0]}x"
+                f"{self.size[1]}, {_gb(self.image_bytes)} of images held{reach})")
 
     def time_line(self, iterations: int) -> str:
         dense = f", {self.dense_calls} Dense calls" if self.dense_calls else ""
@@ -113,7 +116,7 @@ class RunEstimate:
         advice = (f"read the images smaller with --resolution {fitting} (about {_gb(self.peak_at(fitting))})"
                   if fitting is not None else "read the images smaller with --resolution (8, or a target width) "
                   "or use fewer views")
-        return (f"--resolution: training would need about {_gb(self.peak_bytes)} of memory ({self.views} views of "
+        return (f"--resolution: training would need about {_gb(self.peak_bytes)} of {self.memory} ({self.views} views of "
                 f"{self.size[0]}x{self.size[1]}) but {_gb(reach)} is within reach; {advice}")
 
 
@@ -191,6 +194,12 @@ def estimate_memory(views: Sequence[View], train: TrainConfig, polar: PolarConfi
     """
     from polargs_plugin.correction.store import MEMORY_BUDGET
 
+    image_bytes = sum(v.nbytes for v in views)
+    memory = "memory"
+    on_device = device_memory(train.device) if held is None and available == -1 else None
+    if on_device is not None:  # the views, the step and Dense live in the GPU's memory
+        allocated, free = on_device
+        held, available, memory = allocated + image_bytes, free - image_bytes, "GPU memory"
     held = resident_memory() if held is None else held
     available = available_memory() if available == -1 else available
     largest = max(views, key=lambda v: v.width * v.height)
@@ -204,10 +213,20 @@ def estimate_memory(views: Sequence[View], train: TrainConfig, polar: PolarConfi
     cap = train.density.max_gaussians or 3 * train.num_init_points
     appended = calls * polar.densify.max_new_per_call if calls else 0
     fixed = BYTES_PER_GAUSSIAN * (cap + appended) + 2 * MEMORY_BUDGET * (polar is not None)
-    image_bytes = sum(v.nbytes for v in views)
     return RunEstimate(views=len(views), size=(largest.width, largest.height), pixels=pixels, image_bytes=image_bytes,
                        fixed_bytes=held - image_bytes + fixed, held_bytes=held, peak_bytes=held + growth + fixed,
-                       available_bytes=available, dense_calls=calls)
+                       available_bytes=available, dense_calls=calls, memory=memory)
+
+
+def device_memory(device: str) -> tuple[int, int] | None:
+    """(bytes torch holds, bytes free) on a CUDA ``device``; None for any other device."""
+    import torch
+
+    target = torch.device(device)
+    if target.type != "cuda" or not torch.cuda.is_available():
+        return None
+    free, _ = torch.cuda.mem_get_info(target)
+    return int(torch.cuda.memory_allocated(target)), int(free)
 
 
 def estimate_time(estimate: RunEstimate, trainer: Trainer, iterations: int) -> RunEstimate:
