@@ -3,9 +3,9 @@
 :func:`train_run` owns the run-folder contract (docs/cli.md): it locks the folder, checks that a
 ``resume`` continues the same data, estimates the peak memory (refusing what is beyond reach) and
 the time (:mod:`polargs_plugin.service.estimates`), chooses the maps cache, trains with periodic
-checkpoints and writes ``summary.json``. A stop request (Ctrl-C) ends the training after the current iteration
-with a final checkpoint (:class:`TrainingInterrupted`); nothing is left of a run that did not
-start.
+checkpoints and writes ``summary.json``. A stop request (Ctrl-C) ends the training after the
+current iteration with a final checkpoint (:class:`TrainingInterrupted`); nothing is left of a
+run that did not start.
 """
 
 from __future__ import annotations
@@ -270,7 +270,8 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
         how = "given" if request.reader.pattern not in (None, "auto") else "told from the frames"
         notify(f"raw mosaics: {dataset.pattern} ({how}; Bayer colour structure in {evidence or '-'} of bright blocks)")
     if dataset.sfm_model:
-        notify(f"SfM: model written to {dataset.sfm_model} in {dataset.sfm_seconds:.0f} s")
+        took = "" if dataset.sfm_seconds is None else f" in {dataset.sfm_seconds:.0f} s"
+        notify(f"SfM: model written to {dataset.sfm_model}{took}")
     estimate = progress.estimate = estimate_memory(dataset.views, request.train, request.polar)
     notify(estimate.memory_line())
     if request.memory_check and not estimate.fits:
