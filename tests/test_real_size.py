@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -214,6 +215,8 @@ def test_a_scene_folder_read_at_half_resolution(scene_folder):
         assert bool(((b.stokes - expected).abs() <= _half_error(expected) + 1e-7).all())
         assert torch.equal(b.mask, a.mask[:, 1::2, 1::2]) and torch.equal(b.normal_gt, a.normal_gt[:, 1::2, 1::2])
         assert torch.allclose(b.K, a.K * torch.tensor([[0.5], [0.5], [1.0]], dtype=torch.float64))
+    copied = pickle.loads(pickle.dumps(half[0]))  # views travel to worker processes
+    assert torch.equal(copied.stokes, half[0].stokes) and torch.equal(copied.normal_gt, half[0].normal_gt)
     with pytest.raises(PolarInputError, match="--resolution: resolution 40 is a target width above the images' width 32"):
         read_scene_folder(scene_folder, resolution=40)
 

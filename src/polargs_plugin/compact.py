@@ -26,6 +26,7 @@ use it (one view at a time).
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import torch
 from torch import Tensor
@@ -188,10 +189,14 @@ class Deferred:
     def to(self, device: torch.device | str) -> "Deferred":
         return Deferred(self.load, self.shape, self.dtype, device)
 
-    def then(self, transform: Callable[[Tensor], Tensor], shape: tuple[int, ...]) -> "Deferred":
-        """The data ``transform``-ed when read (e.g. resampled), of the new ``shape``."""
-        load = self.load
-        return Deferred(lambda: transform(load()), shape, self.dtype, self.device)
+    def then(self, transform: Callable[[Tensor], Tensor], shape: tuple[int, ...]) -> Deferred:
+        """The data ``transform``-ed when read (e.g. resampled), of the new ``shape`` (picklable
+        when ``transform`` and ``load`` are)."""
+        return Deferred(partial(_transformed, transform, self.load), shape, self.dtype, self.device)
+
+
+def _transformed(transform: Callable[[Tensor], Tensor], load: Callable[[], Tensor]) -> Tensor:
+    return transform(load())
 
 
 Stored = Plain | Half | AngleImages | Deferred
