@@ -67,7 +67,7 @@ def _forward_backward(trainer: Trainer, index: int, hooks: PolarHooks | None) ->
     view, model = trainer.views[index], trainer.model
     wall, cpu = time.perf_counter(), time.process_time()
     render = trainer.render(view)
-    loss = trainer.base_loss(render.color, trainer.targets[index])
+    loss = trainer.base_loss(render.color, trainer.target(view))
     if hooks is not None:
         loss = loss + hooks.loss(trainer.iteration + 1, view, render, model.state())[0]
     loss.backward()

@@ -37,8 +37,8 @@ LAYERS: list[set[str]] = [
     {"hooks"},
     # the PolarGS modules (losses, photometric correction, densification) and mesh evaluation
     {"losses", "correction", "densify", "depth_normal", "reflective_window", "ssim", "mesh", "metrics", "viz", "nearest"},
-    # polarization optics, Gaussian geometry, the data contracts and the dataset readers
-    {"optics", "geometry", "types", "data"},
+    # polarization optics, Gaussian geometry, the data contracts (and their compact storage) and the dataset readers
+    {"optics", "geometry", "types", "compact", "data"},
     # files and errors, configuration, the thread policy
     {"io", "config", "threads"},
 ]

@@ -159,13 +159,19 @@ def test_all_dark_image(copy):
     _expect(copy, path, "dark")
 
 
-@pytest.mark.parametrize("sub,bad", [("depth", np.nan), ("normals", np.inf)])
-def test_non_finite_ground_truth(copy, sub, bad):
+@pytest.mark.parametrize("sub,field,bad", [("depth", "depth_gt", np.nan), ("normals", "normal_gt", np.inf)])
+def test_non_finite_ground_truth(copy, sub, field, bad):
+    """GT maps stay in their files until read (training never reads them): their values are
+    checked then, the error naming the file."""
     path = copy / sub / "view_004.npy"
     array = np.load(path)
     array.flat[17] = bad
     np.save(path, array)
-    _expect(copy, path, "NaN or infinite")
+    views = read_scene_folder(copy)
+    assert views[4].nbytes == views[4].stored("stokes").nbytes + views[4].stored("mask").nbytes
+    with pytest.raises(PolarInputError) as info:
+        getattr(views[4], field)
+    assert info.value.path == str(path) and "NaN or infinite" in info.value.problem
 
 
 def test_ground_truth_shape_mismatch(copy):

@@ -111,9 +111,9 @@ def test_fingerprint_tells_changed_images_and_moved_cameras(scene_folder):
     views = load_dataset(str(scene_folder)).views
     prints = fingerprint(views)
     assert compare_fingerprints(json.loads(json.dumps(prints)), prints) is None
-    darker = [v.__class__(**{**vars(v), "stokes": v.stokes * 0.5}) for v in views]
+    darker = [v.replaced(stokes=v.stokes * 0.5) for v in views]
     assert "the images of 6 of 6 views" in compare_fingerprints(prints, fingerprint(darker))
-    moved = [v.__class__(**{**vars(v), "world_to_camera": v.world_to_camera.clone()}) for v in views]
+    moved = [v.replaced(world_to_camera=v.world_to_camera.clone()) for v in views]
     moved[2].world_to_camera[1, 3] += 0.1
     assert compare_fingerprints(prints, fingerprint(moved)) == (
         f"the cameras of 1 of 6 views ({views[2].name}) differ from those this run was trained on")

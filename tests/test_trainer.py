@@ -260,7 +260,8 @@ def test_hooks_with_zero_gradient_do_not_change_base_training(views):
 
 def test_masked_target_uses_the_background(views):
     trainer = Trainer(views, _config(background=(0.2, 0.4, 0.6)))
-    v, t = trainer.views[0], trainer.targets[0]
+    v = trainer.views[0]
+    t = trainer.target(v)
     outside = ~v.mask[0]
     assert bool(outside.any())
     assert torch.allclose(t[:, outside], torch.tensor([0.2, 0.4, 0.6])[:, None].expand(3, int(outside.sum())))
@@ -307,7 +308,7 @@ def test_mask_edge_band_pixels_give_the_colour_loss_no_gradient(views):
 
     trainer.render = keep_color
     logs = trainer.step()
-    color, target = colors[0], trainer.targets[0]
+    color, target = colors[0], trainer.target(trainer.views[0])
     grad = color.grad.abs().sum(0, keepdim=True)
     assert float(grad[band].max()) == 0.0
     differs = (color.detach() - target).abs().sum(0, keepdim=True) > 1e-3
@@ -334,7 +335,7 @@ def test_base_loss_is_vanilla_colour_loss_on_the_background_target(views):
     from polargs_plugin.losses import photometric_loss
 
     trainer = Trainer(views, _config(background=(0.2, 0.4, 0.6), ssim_weight=0.3))
-    pred, target = torch.rand(3, SIZE, SIZE), trainer.targets[0]
+    pred, target = torch.rand(3, SIZE, SIZE), trainer.target(trainer.views[0])
     ssim = kornia.metrics.ssim(pred[None], target[None], 11).mean()
     vanilla = 0.7 * (pred - target).abs().mean() + 0.3 * (1 - ssim)
     assert torch.allclose(trainer.base_loss(pred, target), vanilla, atol=1e-6)

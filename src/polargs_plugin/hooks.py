@@ -29,13 +29,9 @@ A cache entry whose values are not finite or whose shapes do not fit the view is
 
 from __future__ import annotations
 
-import json
 import numbers
-import pickle
-import re
 import warnings
-from dataclasses import asdict
-from pathlib import Path
+from functools import partial
 from typing import Any, Callable, Sequence
 
 import torch
@@ -43,64 +39,16 @@ from torch import Tensor
 
 from polargs_plugin.config import PolarConfig
 from polargs_plugin.correction import compute_polar_maps, input_range, physical_stokes
-from polargs_plugin.io import PolarInputError, atomic_torch_save
+from polargs_plugin.correction.store import (
+    MEMORY_BUDGET, BytesLRU, MapsStore, maps_cache_file, maps_cache_key, tensor_bytes,
+)
+from polargs_plugin.io import PolarInputError
 from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, normals_within, scale_loss
 from polargs_plugin.types import (
-    GaussianState, NewGaussians, PolarMaps, RenderOut, View, content_digest, describe_view, validate_view,
+    GaussianState, NewGaussians, PolarMaps, RenderOut, View, describe_view, validate_view,
 )
 
-__all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]
-
-# Bump when compute_polar_maps changes its output for the same input: old cache files are ignored.
-# Version 2: the HDR white level, the rule between the DoLP ranges, the physical-cone projection.
-_CACHE_VERSION = 2
-_MAP_FIELDS = ("aolp", "dolp", "intensity", "specular_mask", "overexposed_mask", "pri", "i_diff", "i_chro")
-
-
-def maps_cache_key(view: View, config: PolarConfig) -> str:
-    """SHA-256 of what the maps depend on: Stokes, object mask, correction settings, cache version.
-
-    Args:
-        view: the view (its Stokes and mask are hashed, not its name or camera).
-        config: settings; only ``config.correction`` enters the key.
-
-    Returns:
-        Hex digest.
-    """
-    settings = json.dumps({"version": _CACHE_VERSION, "correction": asdict(config.correction)}).encode()
-    return content_digest(view, settings)
-
-
-def maps_cache_file(cache_dir: Path, view: View, key: str) -> Path:
-    """Where :meth:`PolarHooks.preprocess` caches a view's maps: ``<name>-<key prefix>.pt``."""
-    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", view.name)[:80]
-    return cache_dir / f"{stem}-{key[:24]}.pt"
-
-
-def _maps_to_dict(maps: PolarMaps) -> dict[str, Tensor]:
-    out = {name: getattr(maps, name) for name in _MAP_FIELDS if getattr(maps, name) is not None}
-    out.update({f"extras.{name}": value for name, value in maps.extras.items()})
-    return out
-
-
-def _maps_from_dict(data: dict[str, Tensor]) -> PolarMaps:
-    if not isinstance(data, dict) or any(name not in data for name in _MAP_FIELDS[:3]):
-        raise KeyError("cache entry lacks aolp/dolp/intensity")
-    extras = {name[len("extras.") :]: value for name, value in data.items() if name.startswith("extras.")}
-    return PolarMaps(**{name: data.get(name) for name in _MAP_FIELDS}, extras=extras)
-
-
-def _cache_entry_problem(data: dict[str, Tensor], view: View) -> str | None:
-    """Why a structurally valid cache entry cannot be trusted for ``view`` (None if it can)."""
-    height, width = view.height, view.width
-    for name, value in data.items():
-        if not isinstance(value, Tensor):
-            return f"{name} is not a tensor"
-        if value.ndim != 3 or tuple(value.shape[-2:]) != (height, width):
-            return f"{name} has shape {tuple(value.shape)}, the view is {height}x{width}"
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            return f"{name} holds non-finite values (NaN or inf)"
-    return None
+__all__ = ["PolarHooks", "maps_cache_key", "maps_cache_file"]  # the cache's key and file: correction.store
 
 
 def _check_shape(where: str, argument: str, tensor: Any, expected: tuple[int, ...], view: View) -> None:
@@ -169,22 +117,27 @@ class PolarHooks:
     def __init__(self, config: PolarConfig | None = None) -> None:
         self.config = config if config is not None else PolarConfig.synthetic()
         self.config.validate("config")  # attributes may have been reassigned since it was built
-        self.maps: dict[str, PolarMaps] = {}
+        self.maps = MapsStore(None)
         self._densifier: Any = None
         self._pending_state: dict[str, Any] | None = None
-        self._reflective: dict[tuple[str, torch.device], ReflectiveTargets | None] = {}
+        # per-view constants of L_ref, built from the maps when first used, kept within a budget
+        self._reflective = BytesLRU(MEMORY_BUDGET)
         self._warned: set[tuple[str, str, str]] = set()  # (kind, view name, source): warn once
         self._shapes: dict[str, tuple[int, int]] = {}
 
     # ----------------------------------------------------------------------------- preprocess
-    def preprocess(self, views: list[View]) -> list[PolarMaps]:
+    def preprocess(self, views: list[View]) -> Sequence[PolarMaps]:
         """Compute (or load from the cache) every view's :class:`PolarMaps`; build the densifier.
+
+        The maps are kept compact (:class:`~polargs_plugin.correction.store.MapsStore`: in
+        ``config.cache_dir`` when set, else in memory) and decoded when a view is used.
 
         Args:
             views: the training views (unique names).
 
         Returns:
-            One :class:`PolarMaps` per view, in order.
+            One :class:`PolarMaps` per view, in order (a sequence that decodes an entry when it is
+            indexed).
         """
         names = [view.name for view in views]
         if len(set(names)) != len(names):
@@ -194,10 +147,9 @@ class PolarHooks:
             self._check_physics(view)
         self._shapes = {view.name: (view.height, view.width) for view in views}
         self._reflective.clear()
-        self.maps = {view.name: self._load_or_compute(view) for view in views}
-        if self.config.correction.enabled and self.config.losses.use_ref:
-            for view in views:  # per-view constants of L_ref, on the views' device, built once
-                self._reflective_targets(view, view.stokes.device)
+        self.maps = MapsStore(self.config.cache_dir)
+        for view in views:
+            self.maps.prepare(view, self.config, partial(self._compute_maps, view))
         if self.config.densify.enabled:
             from polargs_plugin.densify.densifier import PolarDensifier
 
@@ -205,7 +157,7 @@ class PolarHooks:
             if self._pending_state is not None:
                 self._densifier.load_state_dict(self._pending_state)
                 self._pending_state = None
-        return [self.maps[name] for name in names]
+        return self.maps.sequence(names)
 
     def _check_physics(self, view: View) -> None:
         """Warn once per view whose s0 / 2 leaves [0, 1]; report impossible Stokes (one warning
@@ -242,46 +194,31 @@ class PolarHooks:
             warnings.warn(f"{where}: {counts}; clamped onto s0 >= 0, DoLP <= 1 (docs/choices.md "
                           "'Impossible Stokes')", stacklevel=3)
 
-    def _load_or_compute(self, view: View) -> PolarMaps:
-        cache_dir = self.config.cache_dir
-        if cache_dir is None:
-            return compute_polar_maps(view.stokes, view.mask, self.config.correction)
-        path = maps_cache_file(Path(cache_dir), view, maps_cache_key(view, self.config))
-        if path.is_file():
-            try:
-                data = torch.load(path, map_location=view.stokes.device, weights_only=True)
-                maps = _maps_from_dict(data)
-                problem = _cache_entry_problem(data, view)
-                if problem is None:
-                    return maps
-                warnings.warn(f"{path}: cache entry of {describe_view(view)} not used ({problem}); recomputed",
-                              stacklevel=3)
-            except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError):
-                pass  # unreadable cache entry: recompute and overwrite it
-        maps = compute_polar_maps(view.stokes, view.mask, self.config.correction)
-        atomic_torch_save({k: v.cpu() for k, v in _maps_to_dict(maps).items()}, path)
-        return maps
+    def _compute_maps(self, view: View) -> PolarMaps:
+        return compute_polar_maps(view.stokes, view.mask, self.config.correction)
 
     def _reflective_targets(self, view: View, device: torch.device) -> ReflectiveTargets | None:
         """The view's :class:`ReflectiveTargets` on ``device`` (built on first use), or ``None``
         when its maps have no reflective masks."""
         key = (view.name, torch.device(device))
-        if key not in self._reflective:
-            if view.name not in self.maps:
-                raise KeyError(f"view '{view.name}' was not preprocessed: call hooks.preprocess(views) first")
-            maps = self.maps[view.name]
-            targets = None
-            if maps.specular_mask is not None:
-                # Clamped like the trainers' targets, so the plain part cancels their colour loss.
-                targets = ReflectiveTargets(
-                    maps.intensity.clamp(0, 1).to(device),
-                    maps.specular_mask.to(device),
-                    maps.i_diff.to(device),
-                    (maps.overexposed_mask & maps.extras["i_chro_valid"]).to(device),
-                    maps.i_chro.to(device),
-                )
-            self._reflective[key] = targets
-        return self._reflective[key]
+        cached = self._reflective.get(key)
+        if cached is not None:
+            return cached[0]
+        if view.name not in self.maps:
+            raise KeyError(f"view '{view.name}' was not preprocessed: call hooks.preprocess(views) first")
+        maps = self.maps[view.name]
+        targets = None
+        if maps.specular_mask is not None:
+            # Clamped like the trainers' targets, so the plain part cancels their colour loss.
+            targets = ReflectiveTargets(
+                maps.intensity.clamp(0, 1).to(device),
+                maps.specular_mask.to(device),
+                maps.i_diff.to(device),
+                (maps.overexposed_mask & maps.extras["i_chro_valid"]).to(device),
+                maps.i_chro.to(device),
+            )
+        self._reflective.put(key, (targets,), tensor_bytes(targets))
+        return targets
 
     # ----------------------------------------------------------------------------------- loss
     def loss(
@@ -309,7 +246,7 @@ class PolarHooks:
         (the unbiased plane depth, as PGSR) where the renderer gives it, else on ``render.depth``;
         ``gamma * L_scale``.
         Only the terms switched on at this iteration are computed, from per-view constants built
-        at :meth:`preprocess`; nothing here waits for the device (the logs stay tensors).
+        when a view is first used (and kept within a memory budget); nothing here waits for the device (the logs stay tensors).
 
         Args:
             iteration: the trainer's iteration (1-based: the first step is 1).

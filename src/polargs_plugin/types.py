@@ -6,6 +6,10 @@ Conventions, binding everywhere:
   pixel (u, v) (column u, row v) has its centre at (u + 0.5, v + 0.5).
   ``world_to_camera`` is a 4x4 (not transposed): x_cam = R @ x_world + t.
 - Images are float32, channel-first (C, H, W), linear, in [0, 1], RGB order.
+- A :class:`View` stores its images compactly (:mod:`polargs_plugin.compact`: 8/16-bit angle
+  images, float16, bool masks) and decodes them on each read of ``view.stokes``,
+  ``view.normal_gt``, ``view.depth_gt``: the decoded tensors have the shapes and dtypes above,
+  and a caller keeps them only while it uses them.
 - Stokes are (3, C, H, W) = (s0, s1, s2); s0 = (I0 + I45 + I90 + I135) / 2 is the full intensity,
   s1 = I0 - I90, s2 = I45 - I135. The training colour is s0 / 2.
 - Depth is camera z (not ray length). Normals are unit camera-frame vectors facing the camera
@@ -22,6 +26,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from polargs_plugin.compact import Stored, as_stored
 from polargs_plugin.io import PolarInputError
 
 __all__ = [
@@ -30,9 +35,38 @@ __all__ = [
 ]
 
 
+class _StoredField:
+    """A :class:`View` image field: kept as a stored form (:mod:`polargs_plugin.compact`), decoded
+    to a fresh full-precision tensor on every read; assigning a tensor keeps it as it is, assigning
+    a stored form (``Half``, ``AngleImages``) keeps that."""
+
+    def __init__(self, required: bool):
+        self.required = required
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name, self.slot = name, f"_stored_{name}"
+
+    def __get__(self, view: Any, owner: type | None = None) -> Any:
+        if view is None:  # the dataclass asks for the default: none for a required field
+            if self.required:
+                raise AttributeError(self.name)
+            return None
+        stored = view.__dict__[self.slot]
+        return None if stored is None else stored.decode()
+
+    def __set__(self, view: Any, value: Any) -> None:
+        if value is None and self.required:
+            raise TypeError(f"View.{self.name} is required")
+        view.__dict__[self.slot] = None if value is None else as_stored(value)
+
+
 @dataclass
 class View:
     """One polarimetric view: camera plus Stokes images.
+
+    The image fields are stored compactly when a reader made them so (8/16-bit angle images,
+    float16; :meth:`stored`) and decoded on every read to the shapes and dtypes below. A tensor
+    given to the constructor (or assigned) is kept as it is.
 
     Attributes:
         name: unique view name (usually the file stem).
@@ -48,19 +82,43 @@ class View:
     name: str
     K: Tensor
     world_to_camera: Tensor
-    stokes: Tensor
-    mask: Tensor | None = None
-    normal_gt: Tensor | None = None
-    depth_gt: Tensor | None = None
+    stokes: Tensor = _StoredField(required=True)  # type: ignore[assignment]
+    mask: Tensor | None = _StoredField(required=False)  # type: ignore[assignment]
+    normal_gt: Tensor | None = _StoredField(required=False)  # type: ignore[assignment]
+    depth_gt: Tensor | None = _StoredField(required=False)  # type: ignore[assignment]
     source: str = ""
+
+    #: The image fields, kept as stored forms.
+    IMAGE_FIELDS = ("stokes", "mask", "normal_gt", "depth_gt")
+
+    def stored(self, name: str) -> Stored | None:
+        """The stored form of the image field ``name`` (one of :attr:`IMAGE_FIELDS`), not decoded."""
+        if name not in self.IMAGE_FIELDS:
+            raise KeyError(f"View has no image field {name!r} (fields: {', '.join(self.IMAGE_FIELDS)})")
+        return self.__dict__[f"_stored_{name}"]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the view's images take in memory as stored."""
+        return sum(s.nbytes for s in (self.stored(n) for n in self.IMAGE_FIELDS) if s is not None)
 
     @property
     def height(self) -> int:
-        return int(self.stokes.shape[-2])
+        return int(self.stored("stokes").shape[-2])
 
     @property
     def width(self) -> int:
-        return int(self.stokes.shape[-1])
+        return int(self.stored("stokes").shape[-1])
+
+    @property
+    def channels(self) -> int:
+        """C, the colour channels of the Stokes images."""
+        return int(self.stored("stokes").shape[1])
+
+    @property
+    def device(self) -> torch.device:
+        """The device the images are on."""
+        return self.stored("stokes").device
 
     @property
     def image(self) -> Tensor:
@@ -82,14 +140,17 @@ class View:
         """(3,) camera centre in world coordinates, -R^T t."""
         return -self.R.T @ self.t
 
-    def to(self, device: torch.device | str) -> "View":
-        """A copy with every tensor on ``device`` (cameras keep float64)."""
-        moved = {
-            f.name: getattr(self, f.name).to(device)
-            for f in fields(self)
-            if isinstance(getattr(self, f.name), Tensor)
-        }
-        return replace(self, **moved)
+    def to(self, device: torch.device | str) -> View:
+        """A copy with every tensor on ``device``, images in their stored forms (cameras keep float64)."""
+        images = {name: None if self.stored(name) is None else self.stored(name).to(device)
+                  for name in self.IMAGE_FIELDS}
+        return self.replaced(K=self.K.to(device), world_to_camera=self.world_to_camera.to(device), **images)
+
+    def replaced(self, **changes: Any) -> View:
+        """:func:`dataclasses.replace` that keeps the images it does not change in their stored
+        forms (``replace`` itself would decode them)."""
+        kept = {name: self.stored(name) for name in self.IMAGE_FIELDS if name not in changes}
+        return replace(self, **kept, **changes)
 
 
 def content_digest(view: View, prefix: bytes = b"") -> str:
@@ -131,26 +192,28 @@ def validate_view(view: View, where: str) -> None:
         PolarInputError: naming the view's source (or name), the field and the problem.
     """
     described = describe_view(view)
-    stokes = view.stokes
-    if not isinstance(stokes, Tensor) or stokes.ndim != 4 or stokes.shape[0] != 3 or stokes.shape[1] not in (1, 3):
-        shape = tuple(stokes.shape) if isinstance(stokes, Tensor) else type(stokes).__name__
-        raise PolarInputError(view.source or view.name, f"{where}: {described}: stokes has shape {shape}, "
+    stokes = view.stored("stokes")  # shapes and finiteness without decoding
+    if len(stokes.shape) != 4 or stokes.shape[0] != 3 or stokes.shape[1] not in (1, 3):
+        raise PolarInputError(view.source or view.name, f"{where}: {described}: stokes has shape {tuple(stokes.shape)}, "
                               "expected (3, C, H, W) with C = 1 or 3")
     height, width = stokes.shape[-2:]
-    expected = {"K": (3, 3), "world_to_camera": (4, 4), "mask": (1, height, width),
-                "normal_gt": (3, height, width), "depth_gt": (1, height, width)}
-    problems = [
-        f"{name} has shape {tuple(getattr(view, name).shape)}, expected {shape}"
-        for name, shape in expected.items()
-        if getattr(view, name) is not None and tuple(getattr(view, name).shape) != shape
-    ]
-    for name in ("stokes", "K", "world_to_camera"):
-        value = getattr(view, name)
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+    expected = {"mask": (1, height, width), "normal_gt": (3, height, width), "depth_gt": (1, height, width)}
+    problems = [f"{name} has shape {tuple(shape)}, expected {wanted}" for name, shape, wanted in (
+        ("K", view.K.shape, (3, 3)), ("world_to_camera", view.world_to_camera.shape, (4, 4)),
+        *((name, view.stored(name).shape, wanted) for name, wanted in expected.items() if view.stored(name) is not None),
+    ) if tuple(shape) != wanted]
+    for name, finite in (("stokes", stokes.all_finite()), ("K", _all_finite(view.K)),
+                         ("world_to_camera", _all_finite(view.world_to_camera))):
+        if not finite:
+            value = getattr(view, name)
             count = int((~torch.isfinite(value)).sum())
             problems.append(f"{name} has {count} non-finite value(s) (NaN or inf), the first at index {_first_bad(value)}")
     if problems:
         raise PolarInputError(view.source or view.name, f"{where}: {described}: " + "; ".join(problems))
+
+
+def _all_finite(tensor: Tensor) -> bool:
+    return not tensor.is_floating_point() or bool(torch.isfinite(tensor).all())
 
 
 @dataclass

@@ -72,7 +72,7 @@ def write_report_data(trainer, tmp: Path, gt_mesh: Path, occluder: Path | None, 
             depth = out.median_depth if out.median_depth is not None else out.depth
             fields = {
                 "color": out.color.clamp(0, 1), "normal": out.normal, "depth": depth, "alpha": out.alpha,
-                "target": trainer.targets[index],
+                "target": trainer.target(view),
                 "K": view.K, "world_to_camera": view.world_to_camera,
             }
             for key, value in (("mask", view.mask), ("normal_gt", view.normal_gt), ("depth_gt", view.depth_gt)):

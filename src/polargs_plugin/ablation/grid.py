@@ -111,12 +111,23 @@ def _scenes(options: GridOptions, scene_texts: Sequence[str], warn: Callable[[st
 
 
 def _mesh_settings(options: GridOptions, scene: SceneSpec) -> dict[str, Any]:
+    from polargs_plugin.data.resolution import target_size
+
     mesh: dict[str, Any] = {"preset": options.mesh_preset}
+    try:
+        width, height = target_size(scene.width, scene.height, options.reader.resolution) if scene.bundled else (0, 0)
+    except ValueError as err:
+        raise PolarInputError(f"--resolution {options.reader.resolution}", f"scene '{scene.name}': {err}") from None
     if options.voxel is not None:
         mesh["voxel"] = options.voxel
-    elif scene.bundled is not None and options.mesh_preset == "synthetic" and min(scene.width, scene.height) != 128:
-        mesh["voxel"] = 1.0 / min(scene.width, scene.height)  # the preset's voxel (1/128 at 128 px) per pixel size
+    elif scene.bundled is not None and options.mesh_preset == "synthetic" and min(width, height) != 128:
+        mesh["voxel"] = 1.0 / min(width, height)  # the preset's voxel (1/128 at 128 px) per pixel size (trained)
     return mesh
+
+
+def _bundled_reader(reader: dict[str, Any]) -> dict[str, Any]:
+    """The reader options that apply to a bundled scene: only the resolution."""
+    return {"resolution": reader["resolution"]} if "resolution" in reader else {}
 
 
 def build_cells(options: GridOptions, scene_texts: Sequence[str], variants: Sequence[str], seeds: Sequence[int],
@@ -146,7 +157,7 @@ def build_cells(options: GridOptions, scene_texts: Sequence[str], variants: Sequ
                         polar_overrides=dict(options.polar_overrides), mesh=_mesh_settings(options, scene),
                         eval={"num_samples": options.eval_samples, "cull": options.cull},
                         threads=options.threads, device=options.device, checkpoint_every=options.checkpoint_every,
-                        reader={} if scene.bundled is not None else dict(reader))
+                        reader=_bundled_reader(reader) if scene.bundled is not None else dict(reader))
     hooked = [variant for variant in dict.fromkeys(variants)  # overrides are checked before anything runs
               if next(c for c in cells if c.variant == variant).configs()[1] is not None]
     if options.polar_overrides and not hooked:

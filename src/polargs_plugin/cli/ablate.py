@@ -381,6 +381,8 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
         parts.append("--sfm")
     if reader.get("check_pattern") is False:
         parts.append("--no-pattern-check")
+    if "resolution" in reader:
+        parts += ["--resolution", str(reader["resolution"])]
     return shlex.join(parts)
 
 

@@ -29,10 +29,24 @@ def _bit_depth(text: str) -> int:
     return value
 
 
+def _resolution(text: str) -> int:
+    from polargs_plugin.data.resolution import check_resolution
+
+    try:
+        return check_resolution(int(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be 1, 2, 4 or 8 (divide the image size) or a target width above 8 pixels, got {text!r}") from None
+
+
 def add_reader_options(p: argparse.ArgumentParser) -> None:
-    """The dataset reader's options (--format, --pattern, --no-pattern-check, --bit-depth, --sfm),
-    shared by every command that reads data."""
+    """The dataset reader's options (--format, --pattern, --no-pattern-check, --bit-depth, --sfm,
+    --resolution), shared by every command that reads data."""
     g = p.add_argument_group("reading the dataset")
+    g.add_argument("-r", "--resolution", type=_resolution, default=1, metavar="R",
+                   help="read the images at 1/R of their size (R = 1, 2, 4 or 8) or at a width of R pixels (R above "
+                   "8), as the upstream trainers' -r: Stokes area-averaged, masks sampled at the new pixel centres, "
+                   "K scaled with them; recorded in the run (default 1: full size)")
     g.add_argument("--format", default="auto", metavar="FMT",
                    help="dataset format: auto (detect, default), polargs, neisf, pandora, nersp, polar")
     g.add_argument("--pattern", choices=PATTERNS, default=None,
@@ -53,7 +67,7 @@ def add_reader_options(p: argparse.ArgumentParser) -> None:
 def reader_options(args: argparse.Namespace) -> ReaderOptions:
     """The reader options of parsed arguments (see :func:`add_reader_options`)."""
     return ReaderOptions(fmt=args.format or "auto", pattern=args.pattern, bit_depth=args.bit_depth, sfm=bool(args.sfm),
-                         check_pattern=not args.no_pattern_check)
+                         check_pattern=not args.no_pattern_check, resolution=getattr(args, "resolution", 1))
 
 
 def print_error(message: str) -> int:

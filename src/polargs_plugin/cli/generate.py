@@ -11,10 +11,14 @@ _EPILOG = """examples:
   polargs generate --scene glossy_plane_sphere --out scenes/sphere
   polargs generate --scene bumpy_mixed --out scenes/bumpy --views 36 --size 160x120 --pictures
   polargs generate --scene shiny_torus --out out/torus --small      # 8 views of 48x48, for tests
+  polargs generate --scene bumpy_mixed --out raw36 --views 36 --size 2448x2048 --mosaic rgb --bits 16 --no-cameras
 
 The folder holds four RGB angle images per view (0/45/90/135 deg), cameras.json (K and
 world_to_camera, OpenCV frame), masks, ground-truth normals/depth/diffuse/specular, highlight and
 overexposure masks, the ground-truth mesh (mesh.ply) and scene.json; see docs/dataset-format.md.
+With --mosaic it is a polar folder of raw sensor frames instead (docs/readers.md): what a
+polarization camera records, for `polargs train FOLDER --pattern auto` (with --sfm when written
+with --no-cameras); views are rendered and written one at a time, so any size fits in memory.
 
 An existing non-empty --out is refused (scenes are never mixed); --overwrite replaces a previous
 scene folder as a whole. The scene is written beside --out and moved into place when complete,
@@ -53,27 +57,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--export", choices=EXPORTS,
                         help="also write the scene as an upstream trainer's input: colmap = OUT/colmap (images/, "
                              "sparse/0) for the graphdeco-family trainers, with OUT as their POLARGS_DATA")
+    parser.add_argument("--mosaic", choices=("rgb", "mono"), default=None,
+                        help="write raw sensor frames instead: a polar folder with raw/<view>.png (rgb: IMX250MYR colour "
+                        "polarization mosaic; mono: IMX250MZR), masks/, the GT meshes and the cameras in sparse/0. --size "
+                        "is the frame's size (2448x2048 for the IMX250: 1224x1024 per polarizer angle)")
+    parser.add_argument("--no-cameras", action="store_true",
+                        help="with --mosaic: leave out the COLMAP model sparse/0 (for `polargs train --sfm`)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Generate, write and summarise one scene."""
     from polargs_plugin.data.synthetic import SMALL_SETTINGS
-    from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder, scene_statistics
+    from polargs_plugin.io import PolarInputError
+    from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder
 
     if args.small:
         args.views, args.size = SMALL_SETTINGS["num_views"], (SMALL_SETTINGS["width"], SMALL_SETTINGS["height"])
     width, height = args.size
+    if args.no_cameras and args.mosaic is None:
+        raise PolarInputError("--no-cameras", "only with --mosaic (a scene folder always holds its cameras)")
     request = SceneRequest(args.scene, views=args.views, width=width, height=height, seed=args.seed,
                            noise_std=args.noise, bits=args.bits, refractive_index=args.ior, mask=args.mask,
-                           pictures=args.pictures)
+                           pictures=args.pictures, mosaic=args.mosaic, cameras=not args.no_cameras)
     made = generate_scene_folder(request, args.out, overwrite=args.overwrite, progress=True, export=args.export)
-    scene, stats = made.scene, scene_statistics(made.scene)
-    print(f"scene       {scene.name}: {scene.meta['description']}")
-    print(f"views       {len(scene.views)} x {width}x{height}, {args.bits}-bit, noise {args.noise}, seed {args.seed}")
+    stats = made.statistics
+    print(f"scene       {made.name}: {made.meta['description']}")
+    print(f"views       {made.num_views} x {width}x{height}, {args.bits}-bit, noise {args.noise}, seed {args.seed}"
+          + (f"; {args.mosaic} raw mosaics" + ("" if request.cameras else ", no cameras (for --sfm)") if args.mosaic else ""))
     print(f"object      {stats['object_fraction']:.1%} of pixels; mesh {stats['mesh_vertices']} vertices")
     print(f"highlights  {stats['highlight_fraction']:.1%} of object pixels, overexposed {stats['overexposed_fraction']:.1%}")
-    print(f"DoLP        median {stats['dolp_median']:.3f} on the object (AoLP model: {scene.meta['azimuth_model']})")
+    print(f"DoLP        median {stats['dolp_median']:.3f} on the object (AoLP model: {made.meta['azimuth_model']})")
     print(f"time        {made.render_seconds:.1f} s rendering, {made.write_seconds:.1f} s writing")
     print(f"written     {args.out}" + (f" (+{made.pictures} pictures)" if made.pictures else ""))
     if args.export:

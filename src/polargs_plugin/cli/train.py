@@ -59,6 +59,10 @@ Examples:
   polargs train captures/ --out runs/raw --preset real --pattern auto --bit-depth 12 --sfm
   polargs train my_scene/ --out runs/nodense --no-dense --config polar.json
   polargs train my_scene/ --out runs/polar --resume --iters 6000
+  polargs train captures/ --out runs/half --sfm --pattern auto --resolution 2   # raw 2448x2048 frames at 1224x1024
+
+Before training the command prints the estimated peak memory and time (docs/real-size.md) and
+refuses a run whose peak is beyond the memory left, naming the --resolution that fits.
 """
 
 
@@ -103,6 +107,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="save the checkpoint every N iterations (default: every 10 %% of the run; 0: only at the end)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-memory-check", action="store_true",
+                   help="train even when the estimated peak memory is beyond what the machine has left (the estimate "
+                   "is printed before training; by default such a run is refused, naming --resolution)")
     add_reader_options(p)
     p.set_defaults(func=run)
 
@@ -140,7 +147,7 @@ def _request(args: argparse.Namespace) -> TrainRequest:
     return TrainRequest(
         dataset=args.dataset, out=Path(args.out), train=train, polar=polar, reader=reader_options(args),
         maps_cache=args.maps_cache, resume=args.resume, checkpoint_every=args.checkpoint_every,
-        command=shlex.join(["polargs", *(getattr(args, "_argv", None) or ["train"])]),
+        command=shlex.join(["polargs", *(getattr(args, "_argv", None) or ["train"])]), memory_check=not args.no_memory_check,
         labels={"schedule": schedule, "preset": preset, "switches": flags,
                 "config_file": None if args.config is None else str(args.config)},
     )

@@ -71,11 +71,13 @@ def _neisf_mask(first: np.ndarray) -> np.ndarray:
     return first / 65535.0 > NEISF_MASK_THRESHOLD
 
 
-def read_neisf(folder: str | os.PathLike) -> list[View]:
+def read_neisf(folder: str | os.PathLike, resolution: int = 1) -> list[View]:
     """Read a NeISF/NeISF++ scene folder into views.
 
     Args:
         folder: the scene folder holding ``poses_bounds.npy`` and ``images_s0/``.
+        resolution: read at this resolution (1, 2, 4, 8 divide the size, above 8: a target
+            width; :mod:`polargs_plugin.data.resolution`); float images are kept as float16.
 
     Returns:
         One :class:`View` per pose row, named ``img_001`` ..., stokes (3, 3, H, W), mask
@@ -98,7 +100,7 @@ def read_neisf(folder: str | os.PathLike) -> list[View]:
             "poses until preprocess_camera_normalization.py rescales them. Read as they are.",
             stacklevel=2,
         )
-    collector = ViewCollector(folder)
+    collector = ViewCollector(folder, resolution=resolution)
     for index, pose in enumerate(poses):
         name = _image_name(index)
         height, width, focal = pose[:, 4]

@@ -105,7 +105,8 @@ def _normal_file(folder: Path, stem: str) -> Path | None:
     return None
 
 
-def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: bool = True) -> list[View]:
+def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: bool = True,
+               resolution: int = 1) -> list[View]:
     """Read an SMVP3D/RMVP3D object folder (NeRSP or PolGS layout) into views.
 
     Args:
@@ -113,6 +114,8 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: b
         normalize: cameras in the unit-sphere frame (world_mat @ scale_mat, as NeRSP/PolGS
             train) if True, in the capture frame (world_mat) if False.
         check_scale: compare the Stokes with the 8-bit pictures and warn on a mismatch.
+        resolution: read at this resolution (1, 2, 4, 8 divide the size, above 8: a target
+            width; :mod:`polargs_plugin.data.resolution`); float images are kept as float16.
 
     Returns:
         One :class:`View` per ``s0/*.npy`` (sorted), named by the file stem; ``stokes``
@@ -129,7 +132,7 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: b
     stems = sorted(p.stem for p in (folder / "s0").glob("*.npy"))
     if not stems:
         raise PolarInputError(folder / "s0", "no .npy Stokes files")
-    collector = ViewCollector(folder, check_scale)
+    collector = ViewCollector(folder, check_scale, resolution)
     for stem in stems:
         if not stem.isdigit():
             raise PolarInputError(folder / "s0" / f"{stem}.npy", "file name is not a view index like 0000.npy")

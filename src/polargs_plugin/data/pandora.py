@@ -51,13 +51,16 @@ _NEGATIVE_TOLERANCE = 1e-6
 """Relative float rounding below zero tolerated in s0 + s1, s0 + s2 when writing."""
 
 
-def read_pandora(folder: str | os.PathLike, normalize: bool = True, check_scale: bool = True) -> list[View]:
+def read_pandora(folder: str | os.PathLike, normalize: bool = True, check_scale: bool = True,
+                 resolution: int = 1) -> list[View]:
     """Read a PANDORA scene folder into views.
 
     Args:
         folder: the scene folder holding ``images_stokes/`` and ``cameras.npz``.
         normalize: cameras in the unit-sphere frame (world_mat @ scale_mat) if True, in the
             capture frame (world_mat) if False.
+        resolution: read at this resolution (1, 2, 4, 8 divide the size, above 8: a target
+            width; :mod:`polargs_plugin.data.resolution`); float images are kept as float16.
 
     Returns:
         One :class:`View` per ``images_stokes/*_s0.hdr`` (sorted), named by its prefix.
@@ -69,7 +72,7 @@ def read_pandora(folder: str | os.PathLike, normalize: bool = True, check_scale:
     names = sorted(p.name[: -len("_s0.hdr")] for p in stokes_dir.glob("*_s0.hdr"))
     if not names:
         raise PolarInputError(stokes_dir, "no *_s0.hdr files")
-    collector = ViewCollector(folder, check_scale)
+    collector = ViewCollector(folder, check_scale, resolution)
     for name in names:
         paths = [stokes_dir / f"{name}_{s}.hdr" for s in ("s0", "s0p1", "s0p2")]
         s0, s0p1, s0p2 = check_stokes([read_hdr(p) for p in paths], paths)

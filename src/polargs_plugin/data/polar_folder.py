@@ -37,12 +37,18 @@ Conversions made by :func:`read_polar_folder`:
 from __future__ import annotations
 
 import os
+import tempfile
+import time
 import warnings
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
+from polargs_plugin.compact import AngleImages, Plain, Stored
 from polargs_plugin.data.colmap import ColmapCamera, find_colmap_model, read_colmap_model, write_colmap_text
 from polargs_plugin.data.imageio_utils import (
     UINT_MAX,
@@ -54,8 +60,9 @@ from polargs_plugin.data.imageio_utils import (
     warn_narrow_range,
     write_png,
 )
+from polargs_plugin.data.resolution import prepare_view, scale_intrinsics, target_size
 from polargs_plugin.data.sfm import run_sfm
-from polargs_plugin.data.views import ViewCollector, read_mask
+from polargs_plugin.data.views import read_mask
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.optics.mosaic import MOSAIC_PATTERNS, demosaic_polar, mosaic_from_intensities
 from polargs_plugin.optics.pattern import (
@@ -68,25 +75,26 @@ from polargs_plugin.optics.pattern import (
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, intensities_from_stokes, stokes_from_intensities
 from polargs_plugin.types import View
 
-__all__ = ["read_polar_folder", "write_polar_folder"]
+__all__ = ["read_polar_folder", "write_polar_folder", "PolarFolderWriter"]
 
 _IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg")
 _RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 _ANGLE_NAMES = tuple(str(a) for a in POLARIZER_ANGLES_DEG)
 
 
-def _read_angle_image(path: Path, bit_depth: int | None) -> tuple[np.ndarray, np.dtype, int | None]:
-    """(H, W, C) float32 image in [0, 1], the file's dtype and its largest value (None for EXR)."""
+def _read_angle_image(path: Path, bit_depth: int | None) -> tuple[np.ndarray, float | None, np.dtype, int | None]:
+    """(H, W, C) values of an angle image as stored, the level of full intensity (None: float data,
+    already in intensity units), the file's dtype and its largest value (None for float data)."""
     if path.suffix.lower() == ".exr":
         array = read_exr(path)
-        return array, array.dtype, None
+        return array, None, array.dtype, None
     raw = read_image(path)
     _check_bit_depth(bit_depth, raw.dtype, path)
     scale = UINT_MAX[raw.dtype] if bit_depth is None else 2**bit_depth - 1
     if raw.max() > scale:
         raise PolarInputError(path, f"values up to {raw.max()} exceed the {bit_depth}-bit range")
     array = raw[..., None] if raw.ndim == 2 else raw[..., :3]
-    return array.astype(np.float32) / np.float32(scale), raw.dtype, int(raw.max())
+    return array, scale, raw.dtype, int(raw.max())
 
 
 def _check_bit_depth(bit_depth: int | None, dtype: np.dtype, path: Path) -> None:
@@ -142,19 +150,24 @@ def _image_root(folder: Path) -> Path:
     return folder / "images" if (folder / "images").is_dir() else folder
 
 
-def _stokes_from_angles(paths: list[Path], bit_depth: int | None) -> torch.Tensor:
+def _stokes_from_angles(paths: list[Path], bit_depth: int | None) -> Stored:
+    """The Stokes of four angle images: the integer images themselves (:class:`AngleImages`) when
+    they are 8/16-bit, else float32 Stokes."""
     images = [_read_angle_image(p, bit_depth) for p in paths]
-    for (array, dtype, _), path in zip(images, paths):
-        if array.shape != images[0][0].shape or dtype != images[0][1]:
+    first_array, first_scale, first_dtype, _ = images[0]
+    for (array, _, dtype, _), path in zip(images, paths):
+        if array.shape != first_array.shape or dtype != first_dtype:
             raise PolarInputError(
-                path, f"{array.shape[:2]} {dtype} image differs from {paths[0].name} ({images[0][0].shape[:2]} {images[0][1]})"
+                path, f"{array.shape[:2]} {dtype} image differs from {paths[0].name} ({first_array.shape[:2]} {first_dtype})"
             )
-    intensities = np.stack([array.transpose(2, 0, 1) for array, _, _ in images])
-    if not intensities.max() > 0:
+    stacked = np.stack([array.transpose(2, 0, 1) for array, _, _, _ in images])
+    if not stacked.max() > 0:
         raise PolarInputError(paths[0], "all-dark view: every angle image is zero")
-    peaks = [peak for _, _, peak in images if peak is not None]
-    _warn_narrow_view(max(peaks) if peaks else None, images[0][1], bit_depth, paths[0])
-    return stokes_from_intensities(torch.from_numpy(intensities))
+    peaks = [peak for _, _, _, peak in images if peak is not None]
+    _warn_narrow_view(max(peaks) if peaks else None, first_dtype, bit_depth, paths[0])
+    if first_scale is not None:
+        return AngleImages(torch.from_numpy(np.ascontiguousarray(stacked)), first_scale)
+    return Plain(stokes_from_intensities(torch.from_numpy(stacked.astype(np.float32))))
 
 
 def _read_raw(path: Path) -> np.ndarray:
@@ -164,21 +177,30 @@ def _read_raw(path: Path) -> np.ndarray:
     return raw
 
 
-def _stokes_from_raw(raw: np.ndarray, path: Path, pattern: str, bit_depth: int | None) -> torch.Tensor:
+def _stokes_from_raw(path: Path, pattern: str, bit_depth: int | None) -> Stored:
+    """The Stokes of a raw mosaic: its demosaiced integer levels (:class:`AngleImages`) when the
+    frame is integer, else float32 Stokes."""
+    raw = _read_raw(path)
     if raw.dtype in UINT_MAX and (bit_depth is None or bit_depth <= 8 * raw.dtype.itemsize):
         _warn_narrow_view(int(raw.max()), raw.dtype, bit_depth, path)
     intensities = demosaic_polar(raw, pattern=pattern, bit_depth=bit_depth, source=str(path))
-    return stokes_from_intensities(intensities)
+    if np.issubdtype(raw.dtype, np.floating):
+        return Plain(stokes_from_intensities(intensities))
+    full = 2**bit_depth - 1 if bit_depth is not None else UINT_MAX[raw.dtype]
+    # the demosaiced integer levels, exactly: (level / full) * full lies within 0.5 of the level
+    levels = torch.round(intensities * full).to(torch.uint16 if full > 255 else torch.uint8)
+    return AngleImages(levels, full)
 
 
 def _resolve_pattern(
-    raws: dict[str, np.ndarray], paths: dict[str, Path], pattern: str, bit_depth: int | None, check: bool
+    paths: dict[str, Path], pattern: str, bit_depth: int | None, check: bool
 ) -> tuple[str, dict[str, float | None]]:
     """The mosaic pattern of a folder's raw frames: ``pattern`` checked against each frame, or
-    told from them (``"auto"``). Returns (pattern, {name: colour evidence})."""
+    told from them (``"auto"``). Returns (pattern, {name: colour evidence}). The frames are read
+    one at a time."""
     if pattern != "auto" and not check:
         return pattern, {}
-    evidence = {name: mosaic_colour_evidence(raw, bit_depth, str(paths[name])) for name, raw in raws.items()}
+    evidence = {name: mosaic_colour_evidence(_read_raw(path), bit_depth, str(path)) for name, path in paths.items()}
     if pattern != "auto":
         for name, value in evidence.items():
             problem = pattern_mismatch(value, pattern)
@@ -216,11 +238,11 @@ def _camera_for(name: str, model: dict[str, ColmapCamera]) -> ColmapCamera | Non
     return by_stem.get(name)
 
 
-def _read_stokes(
+def _stokes_readers(
     folder: Path, pattern: str | None, bit_depth: int | None, check_pattern: bool, info: dict
-) -> dict[str, torch.Tensor]:
-    """{name: (3, C, H, W) Stokes} of every view in the folder's angle images or, without them,
-    its raw mosaics; the mosaic pattern used and the frames' colour evidence go into ``info``."""
+) -> dict[str, Callable[[], Stored]]:
+    """{name: a function reading that view's Stokes} from the folder's angle images or, without
+    them, its raw mosaics; the mosaic pattern used and the frames' colour evidence go into ``info``."""
     angle_sets = _angle_sets(_image_root(folder))
     raw_files = {} if angle_sets else _files_by_stem(folder / "raw", _RAW_SUFFIXES)
     if not angle_sets and not raw_files:
@@ -231,50 +253,53 @@ def _read_stokes(
         raise PolarInputError(
             folder / "raw", f"unknown mosaic pattern {pattern!r}; pass pattern= one of {(*MOSAIC_PATTERNS, 'auto')} (polargs: --pattern)"
         )
-    stokes = {name: _stokes_from_angles(paths, bit_depth) for name, paths in angle_sets.items()}
+    readers = {name: partial(_stokes_from_angles, paths, bit_depth) for name, paths in angle_sets.items()}
     used_pattern, evidence = None, {}
     if raw_files:
-        raws = {name: _read_raw(path) for name, path in raw_files.items()}
-        used_pattern, evidence = _resolve_pattern(raws, raw_files, pattern, bit_depth, check_pattern)
-        for name in list(raws):
-            stokes[name] = _stokes_from_raw(raws.pop(name), raw_files[name], used_pattern, bit_depth)
+        used_pattern, evidence = _resolve_pattern(raw_files, pattern, bit_depth, check_pattern)
+        readers.update({name: partial(_stokes_from_raw, path, used_pattern, bit_depth) for name, path in raw_files.items()})
     info.update(pattern=used_pattern, colour_evidence=evidence, sfm=False)
-    return stokes
+    return readers
 
 
-def _model_folder(folder: Path, stokes: dict[str, torch.Tensor], sfm: bool, info: dict) -> Path:
-    """The folder's COLMAP model; without one and with ``sfm``, built now by SfM on sRGB 8-bit
-    pictures of the views' s0 / 2. ``info`` records where it is and whether SfM built it."""
-    model_dir = find_colmap_model(folder)
-    if model_dir is None:
-        if not sfm:
-            raise PolarInputError(
-                folder, "no COLMAP model (sparse/0/cameras.txt|.bin, images.txt|.bin); pass sfm=True (polargs: --sfm) to run SfM"
-            )
-        pictures = {name: np.rint(linear_to_srgb(to_hwc(s[0] / 2)) * 255).astype(np.uint8) for name, s in stokes.items()}
-        model_dir = run_sfm(pictures, folder / "sparse" / "0")
-        info["sfm"] = True
-    info["model"] = str(model_dir)
-    return model_dir
+def _sfm_picture(stokes: Tensor) -> np.ndarray:
+    """The sRGB 8-bit picture of s0 / 2 that SfM matches."""
+    return np.rint(linear_to_srgb(to_hwc(stokes[0] / 2)) * 255).astype(np.uint8)
 
 
-def _registered_views(folder: Path, stokes: dict[str, torch.Tensor], model_dir: Path) -> tuple[list[View], list[str]]:
-    """The views the COLMAP model in ``model_dir`` has cameras for (with their masks from
-    ``masks/``), and the names of those it has none for."""
-    model = read_colmap_model(model_dir)
+def _read_views(folder: Path, readers: dict[str, Callable[[], Stored]], resolution: int,
+                pictures: Path | None) -> dict[str, tuple[View, tuple[int, int]]]:
+    """{name: (view whose camera is still to be set, size (W, H) of its files)} at ``resolution``,
+    read one view at a time; with ``pictures``, each view's full-size SfM picture is written there."""
     mask_paths = _files_by_stem(folder / "masks", (".png", ".tif", ".tiff"))
-    collector, unregistered = ViewCollector(folder), []
-    for name, view_stokes in stokes.items():
+    views = {}
+    for name, read in readers.items():
+        stored = read()
+        height, width = stored.shape[-2:]
+        if pictures is not None:
+            write_png(pictures / f"{name}.png", _sfm_picture(stored.decode()), 8)
+        mask = read_mask(mask_paths[name], (height, width), matched="the images") if name in mask_paths else None
+        camera = torch.eye(4, dtype=torch.float64)  # set from the COLMAP model once it is known
+        view = View(name=name, K=camera[:3, :3].clone(), world_to_camera=camera, stokes=stored, mask=mask, source=str(folder))
+        views[name] = (prepare_view(view, resolution), (width, height))
+    return views
+
+
+def _registered_views(views: dict[str, tuple[View, tuple[int, int]]], model_dir: Path) -> tuple[list[View], list[str]]:
+    """The views the COLMAP model in ``model_dir`` has cameras for, with those cameras (K scaled
+    to the views' resolution), and the names of those it has none for."""
+    model = read_colmap_model(model_dir)
+    registered, unregistered = [], []
+    for name, (view, (width, height)) in views.items():
         camera = _camera_for(name, model)
         if camera is None:
             unregistered.append(name)
             continue
-        height, width = view_stokes.shape[-2:]
         if (camera.width, camera.height) != (width, height):
             raise PolarInputError(model_dir, f"camera of {name} is {camera.width}x{camera.height}, images are {width}x{height}")
-        mask = read_mask(mask_paths[name], (height, width), matched="the images") if name in mask_paths else None
-        collector.add(name, camera.K.copy(), camera.world_to_camera.copy(), view_stokes, mask)
-    return collector.finish(), unregistered
+        K = scale_intrinsics(torch.from_numpy(camera.K.copy()), (width, height), (view.width, view.height))
+        registered.append(view.replaced(K=K, world_to_camera=torch.from_numpy(camera.world_to_camera.copy())))
+    return registered, unregistered
 
 
 def read_polar_folder(
@@ -284,8 +309,13 @@ def read_polar_folder(
     sfm: bool = False,
     check_pattern: bool = True,
     info: dict | None = None,
+    resolution: int = 1,
 ) -> list[View]:
     """Read four-angle images or raw mosaics plus a COLMAP model into views.
+
+    Views are read one at a time and kept compact (:mod:`polargs_plugin.compact`): 8/16-bit
+    angle images and integer raw frames as their integer (demosaiced) levels; float data, and
+    images averaged by ``resolution``, as float16.
 
     Args:
         folder: the capture folder (layout in the module docstring).
@@ -293,13 +323,18 @@ def read_polar_folder(
             error when they cannot tell); required when reading mosaics.
         bit_depth: significant bits of integer images (e.g. 12 for 12-bit data in 16-bit files);
             None uses the full range of the file's dtype.
-        sfm: when no COLMAP model exists, run pycolmap SfM and write ``sparse/0``.
+        sfm: when no COLMAP model exists, run pycolmap SfM and write ``sparse/0`` (cameras of the
+            files' size; with a ``resolution`` other than 1 the features are found on pictures
+            scaled down to the training width).
         check_pattern: check a given pattern against every raw frame (a mono frame read as "rgb"
             is an error, and the reverse); off for colour frames of grey, white-balanced scenes,
             which cannot be told from mono ones.
         info: a dict to fill with what was found: ``pattern`` (the one used for raw/, or None),
             ``colour_evidence`` ({view: fraction}, see ``mosaic_colour_evidence``), ``model``
-            (the COLMAP model folder) and ``sfm`` (True when SfM built it now).
+            (the COLMAP model folder), ``sfm`` (True when SfM built it now) and, then,
+            ``sfm_seconds`` (its wall time).
+        resolution: read at this resolution (1, 2, 4, 8 divide the size, above 8: a target
+            width; :mod:`polargs_plugin.data.resolution`).
 
     Returns:
         One :class:`View` per registered image (sorted by name); images that the model does
@@ -307,14 +342,28 @@ def read_polar_folder(
     """
     folder = Path(folder)
     info = {} if info is None else info
-    stokes = _read_stokes(folder, pattern, bit_depth, check_pattern, info)
-    model_dir = _model_folder(folder, stokes, sfm, info)
-    views, unregistered = _registered_views(folder, stokes, model_dir)
+    readers = _stokes_readers(folder, pattern, bit_depth, check_pattern, info)
+    model_dir = find_colmap_model(folder)
+    if model_dir is None and not sfm:
+        raise PolarInputError(
+            folder, "no COLMAP model (sparse/0/cameras.txt|.bin, images.txt|.bin); pass sfm=True (polargs: --sfm) to run SfM"
+        )
+    with tempfile.TemporaryDirectory(prefix="polargs-sfm-") as scratch:
+        pictures = Path(scratch) if model_dir is None else None
+        views = _read_views(folder, readers, resolution, pictures)
+        if pictures is not None:
+            started = time.perf_counter()
+            width = next(iter(views.values()))[1][0]
+            max_size = None if resolution == 1 else target_size(width, width, resolution)[0]
+            model_dir = run_sfm(pictures, folder / "sparse" / "0", max_image_size=max_size)
+            info.update(sfm=True, sfm_seconds=time.perf_counter() - started)
+    info["model"] = str(model_dir)
+    registered, unregistered = _registered_views(views, model_dir)
     if unregistered:
         warnings.warn(f"{folder}: {len(unregistered)} views have no camera in {model_dir}: {unregistered[:10]}", stacklevel=2)
-    if not views:
+    if not registered:
         raise PolarInputError(model_dir, "registers none of the images")
-    return views
+    return registered
 
 
 def write_polar_folder(
@@ -344,32 +393,55 @@ def write_polar_folder(
     Returns:
         ``folder``.
     """
-    if mode not in ("angles", "raw"):
-        raise ValueError(f"mode must be 'angles' or 'raw', got {mode!r}")
-    if mode == "raw" and pattern not in MOSAIC_PATTERNS:
-        raise ValueError(f"pattern must be one of {MOSAIC_PATTERNS}, got {pattern!r}")
-    folder = Path(folder)
-    model = {}
+    writer = PolarFolderWriter(folder, mode, pattern, bit_depth, per_angle_folders)
     for index, view in enumerate(views):
-        given = angle_images[index] if angle_images is not None else None
-        if given is None:
+        writer.add(view, angle_images[index] if angle_images is not None else None)
+    return writer.finish()
+
+
+class PolarFolderWriter:
+    """Writes a polar folder view by view (:func:`write_polar_folder` in parts); arguments as there.
+
+    :meth:`finish` writes the COLMAP model of the views added (or, with ``cameras=False``,
+    leaves it out, for SfM to build).
+    """
+
+    def __init__(self, folder: str | os.PathLike, mode: str = "angles", pattern: str = "rgb", bit_depth: int = 16,
+                 per_angle_folders: bool = False):
+        if mode not in ("angles", "raw"):
+            raise ValueError(f"mode must be 'angles' or 'raw', got {mode!r}")
+        if mode == "raw" and pattern not in MOSAIC_PATTERNS:
+            raise ValueError(f"pattern must be one of {MOSAIC_PATTERNS}, got {pattern!r}")
+        self.folder, self.mode, self.pattern, self.bit_depth = Path(folder), mode, pattern, bit_depth
+        self.per_angle_folders = per_angle_folders
+        self.model: dict[str, ColmapCamera] = {}
+
+    def add(self, view: View, angle_images: torch.Tensor | None = None) -> None:
+        """Write one view (its ``angle_images`` as they are, or the Malus images of its Stokes)."""
+        folder = self.folder
+        if angle_images is None:
             # Malus; clipping only matters where the views' Stokes come from saturated images
             intensities = intensities_from_stokes(view.stokes.detach().cpu().double()).clamp(0, 1)
         else:
-            intensities = given.detach().cpu().double()
-            if intensities.shape != (4, *view.stokes.shape[1:]):
-                raise ValueError(f"angle_images[{index}] has shape {tuple(intensities.shape)}, expected (4, C, H, W)")
-        if mode == "raw":
-            raw = mosaic_from_intensities(intensities, pattern)
-            write_png(folder / "raw" / f"{view.name}.png", np.asarray(raw, dtype=np.float64), bit_depth)
+            intensities = angle_images.detach().cpu().double()
+            if intensities.shape != (4, view.channels, view.height, view.width):
+                raise ValueError(f"angle images of view {view.name} have shape {tuple(intensities.shape)}, "
+                                 "expected (4, C, H, W)")
+        if self.mode == "raw":
+            raw = mosaic_from_intensities(intensities, self.pattern)
+            write_png(folder / "raw" / f"{view.name}.png", np.asarray(raw, dtype=np.float64), self.bit_depth)
         else:
             for angle, image in zip(_ANGLE_NAMES, intensities):
-                name = f"{angle}/{view.name}.png" if per_angle_folders else f"{view.name}_{angle}.png"
-                write_png(folder / "images" / name, to_hwc(image), bit_depth)
+                name = f"{angle}/{view.name}.png" if self.per_angle_folders else f"{view.name}_{angle}.png"
+                write_png(folder / "images" / name, to_hwc(image), self.bit_depth)
         if view.mask is not None:
             write_png(folder / "masks" / f"{view.name}.png", view.mask[0].cpu().numpy().astype(np.uint8) * 255, 8)
-        model[f"{view.name}.png"] = ColmapCamera(
+        self.model[f"{view.name}.png"] = ColmapCamera(
             view.K.double().cpu().numpy(), view.world_to_camera.double().cpu().numpy(), view.width, view.height
         )
-    write_colmap_text(folder / "sparse" / "0", model)
-    return folder
+
+    def finish(self, cameras: bool = True) -> Path:
+        """Write the COLMAP model ``sparse/0`` of the views added (unless ``cameras`` is False); the folder."""
+        if cameras:
+            write_colmap_text(self.folder / "sparse" / "0", self.model)
+        return self.folder

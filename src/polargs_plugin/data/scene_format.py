@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import re
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -33,10 +34,12 @@ import open3d as o3d
 import torch
 from torch import Tensor
 
+from polargs_plugin.compact import AngleImages, Deferred
 from polargs_plugin.data.imageio_utils import warn_narrow_range
+from polargs_plugin.data.resolution import prepare_view, target_size
 from polargs_plugin.data.synthetic import SyntheticScene, mask_from_ranges, triangle_ranges
 from polargs_plugin.io import PolarInputError, atomic_path, atomic_write
-from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG, stokes_from_intensities
+from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG
 from polargs_plugin.types import View
 
 __all__ = [
@@ -44,6 +47,8 @@ __all__ = [
     "FORMAT_VERSION",
     "CAMERAS_FILE",
     "write_scene",
+    "SceneWriter",
+    "write_meshes",
     "read_scene_folder",
     "read_scene",
     "read_gt_mesh",
@@ -105,38 +110,86 @@ def write_scene(scene: SyntheticScene, folder: str | Path) -> Path:
     Returns:
         the folder path.
     """
+    writer = SceneWriter(folder, int(scene.meta.get("quantize_bits", 16)))
+    writer.add(scene)
+    return writer.finish(scene)
+
+
+class SceneWriter:
+    """Writes a scene folder view by view (:func:`write_scene` in parts, e.g. for views rendered
+    one at a time by :func:`~polargs_plugin.data.synthetic.generate_scene_views`).
+
+    Args:
+        folder: output folder (created; existing files with the same names are replaced).
+        bits: bit depth of the angle images, 8 or 16.
+    """
+
+    def __init__(self, folder: str | Path, bits: int):
+        if bits not in (8, 16):
+            raise ValueError(f"quantize_bits must be 8 or 16 to write PNG angle images, got {bits}")
+        self.folder, self.bits = Path(folder), bits
+        self.size: tuple[int, int] | None = None  # (H, W) of the first view
+        self.cameras: list[dict] = []
+
+    def add(self, scene: SyntheticScene) -> None:
+        """Write the files of every view of ``scene`` (all views share one size)."""
+        folder = self.folder
+        dtype, levels = (np.uint8, 255) if self.bits == 8 else (np.uint16, 65535)
+        for index, view in enumerate(scene.views):
+            self.size = self.size or (view.height, view.width)
+            if (view.height, view.width) != self.size:
+                raise ValueError(f"view {view.name} is {view.width}x{view.height}, expected {self.size[1]}x{self.size[0]}")
+            for angle, image in zip(POLARIZER_ANGLES_DEG, scene.angle_images[index]):
+                pixels = np.round(np.clip(_hwc(image), 0.0, 1.0) * levels).astype(dtype)
+                _write_png(_angle_path(folder, view.name, angle), pixels)
+            if view.mask is not None:
+                _write_png(folder / "masks" / f"{view.name}.png", _mask_png(view.mask))
+            if view.normal_gt is not None:
+                _write_npy(folder / "normals" / f"{view.name}.npy", _hwc(view.normal_gt))
+            if view.depth_gt is not None:
+                _write_npy(folder / "depth" / f"{view.name}.npy", view.depth_gt[0].numpy())
+            _write_npy(folder / "diffuse" / f"{view.name}.npy", _hwc(scene.diffuse_gt[index]))
+            _write_npy(folder / "specular" / f"{view.name}.npy", _hwc(scene.specular_gt[index]))
+            _write_png(folder / "highlights" / f"{view.name}.png", _mask_png(scene.highlight_masks[index]))
+            _write_png(folder / "overexposed" / f"{view.name}.png", _mask_png(scene.overexposed_masks[index]))
+            self.cameras.append(
+                {
+                    "name": view.name,
+                    "K": view.K.to(torch.float64).tolist(),
+                    "world_to_camera": view.world_to_camera.to(torch.float64).tolist(),
+                }
+            )
+
+    def finish(self, scene: SyntheticScene) -> Path:
+        """Write the meshes and the meta of ``scene``, then ``cameras.json`` (last: a folder that
+        has it is complete); the folder path."""
+        if self.size is None:
+            raise ValueError("the scene has no views")
+        write_meshes(scene, self.folder)
+        with atomic_write(self.folder / META_FILE) as handle:
+            meta = {"name": scene.name, **scene.meta}
+            if scene.object_triangles is not None:
+                meta["object_triangles"] = triangle_ranges(scene.object_triangles)
+            json.dump(meta, handle, indent=2)
+        header = {
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "width": self.size[1],
+            "height": self.size[0],
+            "bit_depth": self.bits,
+            "angles_deg": list(POLARIZER_ANGLES_DEG),
+            "color": "RGB",
+            "views": self.cameras,
+        }
+        with atomic_write(self.folder / CAMERAS_FILE) as handle:
+            json.dump(header, handle, indent=1)
+        return self.folder
+
+
+def write_meshes(scene: SyntheticScene, folder: str | Path) -> None:
+    """The scene's whole mesh as ``mesh.ply`` and the object alone as ``gt_mesh.ply`` (the
+    evaluation ground truth), each written atomically."""
     folder = Path(folder)
-    bits = int(scene.meta.get("quantize_bits", 16))
-    if bits not in (8, 16):
-        raise ValueError(f"quantize_bits must be 8 or 16 to write PNG angle images, got {bits}")
-    dtype, levels = (np.uint8, 255) if bits == 8 else (np.uint16, 65535)
-    if not scene.views:
-        raise ValueError("the scene has no views")
-    height, width = scene.views[0].height, scene.views[0].width
-    cameras = []
-    for index, view in enumerate(scene.views):
-        if (view.height, view.width) != (height, width):
-            raise ValueError(f"view {view.name} is {view.width}x{view.height}, expected {width}x{height}")
-        for angle, image in zip(POLARIZER_ANGLES_DEG, scene.angle_images[index]):
-            pixels = np.round(np.clip(_hwc(image), 0.0, 1.0) * levels).astype(dtype)
-            _write_png(_angle_path(folder, view.name, angle), pixels)
-        if view.mask is not None:
-            _write_png(folder / "masks" / f"{view.name}.png", _mask_png(view.mask))
-        if view.normal_gt is not None:
-            _write_npy(folder / "normals" / f"{view.name}.npy", _hwc(view.normal_gt))
-        if view.depth_gt is not None:
-            _write_npy(folder / "depth" / f"{view.name}.npy", view.depth_gt[0].numpy())
-        _write_npy(folder / "diffuse" / f"{view.name}.npy", _hwc(scene.diffuse_gt[index]))
-        _write_npy(folder / "specular" / f"{view.name}.npy", _hwc(scene.specular_gt[index]))
-        _write_png(folder / "highlights" / f"{view.name}.png", _mask_png(scene.highlight_masks[index]))
-        _write_png(folder / "overexposed" / f"{view.name}.png", _mask_png(scene.overexposed_masks[index]))
-        cameras.append(
-            {
-                "name": view.name,
-                "K": view.K.to(torch.float64).tolist(),
-                "world_to_camera": view.world_to_camera.to(torch.float64).tolist(),
-            }
-        )
     for name, (vertices, triangles) in (
         (MESH_FILE, (scene.mesh_vertices, scene.mesh_triangles)),
         (GT_MESH_FILE, scene.object_mesh()),
@@ -148,24 +201,6 @@ def write_scene(scene: SyntheticScene, folder: str | Path) -> Path:
         with atomic_path(folder / name) as tmp:
             if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
                 raise OSError(f"{folder / name}: open3d could not write the mesh")
-    with atomic_write(folder / META_FILE) as handle:
-        meta = {"name": scene.name, **scene.meta}
-        if scene.object_triangles is not None:
-            meta["object_triangles"] = triangle_ranges(scene.object_triangles)
-        json.dump(meta, handle, indent=2)
-    header = {
-        "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
-        "width": width,
-        "height": height,
-        "bit_depth": bits,
-        "angles_deg": list(POLARIZER_ANGLES_DEG),
-        "color": "RGB",
-        "views": cameras,
-    }
-    with atomic_write(folder / CAMERAS_FILE) as handle:
-        json.dump(header, handle, indent=1)
-    return folder
 
 
 # ---------------------------------------------------------------------------------------------
@@ -258,8 +293,8 @@ def _read_png(path: Path, what: str) -> np.ndarray:
     return image
 
 
-def _read_angles(folder: Path, name: str, header: dict) -> Tensor:
-    """(4, C, H, W) float32 angle images in [0, 1], validated."""
+def _read_angles(folder: Path, name: str, header: dict) -> AngleImages:
+    """The four angle images of a view as read (8/16-bit integers, (4, C, H, W)), validated."""
     images, first, peak = [], None, 0
     for angle in POLARIZER_ANGLES_DEG:
         path = _angle_path(folder, name, angle)
@@ -282,12 +317,13 @@ def _read_angles(folder: Path, name: str, header: dict) -> Tensor:
         if image.max() == 0:
             raise PolarInputError(path, "image is all dark (every pixel 0)")
         peak = max(peak, int(image.max()))
-        images.append(image.astype(np.float32) / np.iinfo(image.dtype).max)
+        images.append(image)
     warn_narrow_range(peak, header["bit_depth"], first[0], f"{CAMERAS_FILE} declares bit_depth {header['bit_depth']}")
     stacked = np.stack(images)
     if stacked.ndim == 3:
         stacked = stacked[..., None]
-    return torch.from_numpy(np.ascontiguousarray(stacked.transpose(0, 3, 1, 2)))
+    angles = torch.from_numpy(np.ascontiguousarray(stacked.transpose(0, 3, 1, 2)))
+    return AngleImages(angles, np.iinfo(stacked.dtype).max)
 
 
 def _read_mask(path: Path, shape: tuple[int, int], what: str) -> Tensor:
@@ -297,60 +333,76 @@ def _read_mask(path: Path, shape: tuple[int, int], what: str) -> Tensor:
     return torch.from_numpy(image > 0).unsqueeze(0)
 
 
-def _read_npy(path: Path, shape: tuple[int, ...], what: str) -> Tensor:
+def _open_npy(path: Path, shape: tuple[int, ...], what: str, mmap: bool = False) -> np.ndarray:
+    """The array of a GT ``.npy`` file, its shape and dtype checked (``mmap``: its header only is read now)."""
     try:
-        array = np.load(path, allow_pickle=False)
+        array = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (OSError, ValueError) as err:
         raise PolarInputError(path, f"unreadable {what} ({err})") from None
     if array.shape != shape:
         raise PolarInputError(path, f"{what} has shape {array.shape}, expected {shape}")
     if not np.issubdtype(array.dtype, np.floating):
         raise PolarInputError(path, f"{what} has dtype {array.dtype}, expected float")
+    return array
+
+
+def _read_npy(path: Path, shape: tuple[int, ...], what: str) -> Tensor:
+    array = _open_npy(path, shape, what)
     if not np.isfinite(array).all():
         raise PolarInputError(path, f"{what} has NaN or infinite values")
     tensor = torch.from_numpy(array.astype(np.float32))
     return tensor.permute(2, 0, 1).contiguous() if tensor.ndim == 3 else tensor.unsqueeze(0)
 
 
-def _read_views(folder: Path, header: dict) -> tuple[list[View], list[Tensor]]:
-    """The views of a validated header and their (4, C, H, W) angle images."""
+def _deferred_npy(path: Path, shape: tuple[int, ...], what: str) -> Deferred:
+    """A GT map left in its ``.npy`` file until read (:func:`_read_npy` then, which checks its
+    values); its shape and dtype are checked now from the file's header."""
+    _open_npy(path, shape, what, mmap=True)
+    channels = shape[2] if len(shape) == 3 else 1
+    return Deferred(partial(_read_npy, path, shape, what), (channels, *shape[:2]))
+
+
+def _read_views(folder: Path, header: dict, resolution: int = 1) -> list[View]:
+    """The views of a validated header, at ``resolution`` (:mod:`polargs_plugin.data.resolution`)."""
     cameras_path = folder / CAMERAS_FILE
     shape = (header["height"], header["width"])
-    views, angle_images = [], []
+    views = []
     for entry in header["views"]:
         name = entry["name"]
         K = _matrix(entry, "K", (3, 3), cameras_path, name)
         w2c = _matrix(entry, "world_to_camera", (4, 4), cameras_path, name)
         _check_camera(K, w2c, cameras_path, name)
-        angles = _read_angles(folder, name, header)
         mask_path, normal_path, depth_path = (
             folder / "masks" / f"{name}.png",
             folder / "normals" / f"{name}.npy",
             folder / "depth" / f"{name}.npy",
         )
-        views.append(
-            View(
-                name=name,
-                K=torch.from_numpy(K),
-                world_to_camera=torch.from_numpy(w2c),
-                stokes=stokes_from_intensities(angles),
-                mask=_read_mask(mask_path, shape, "mask") if mask_path.exists() else None,
-                normal_gt=_read_npy(normal_path, (*shape, 3), "GT normal map") if normal_path.exists() else None,
-                depth_gt=_read_npy(depth_path, shape, "GT depth map") if depth_path.exists() else None,
-                source=str(folder),
-            )
+        view = View(
+            name=name,
+            K=torch.from_numpy(K),
+            world_to_camera=torch.from_numpy(w2c),
+            stokes=_read_angles(folder, name, header),
+            mask=_read_mask(mask_path, shape, "mask") if mask_path.exists() else None,
+            normal_gt=_deferred_npy(normal_path, (*shape, 3), "GT normal map") if normal_path.exists() else None,
+            depth_gt=_deferred_npy(depth_path, shape, "GT depth map") if depth_path.exists() else None,
+            source=str(folder),
         )
-        angle_images.append(angles)
-    return views, angle_images
+        views.append(prepare_view(view, resolution))
+    return views
 
 
-def read_scene_folder(folder: str | Path) -> list[View]:
+def read_scene_folder(folder: str | Path, resolution: int = 1) -> list[View]:
     """Read a scene folder into :class:`View` objects (Stokes from the angle images).
 
-    Masks, GT normals and GT depth are loaded when their files exist.
+    Masks, GT normals and GT depth are loaded when their files exist. The views keep the
+    integer angle images (their Stokes are decoded from them on each read, bit for bit the
+    float32 Stokes of the images); the GT maps stay in their files until read, their headers
+    checked now and their values when read (:mod:`polargs_plugin.compact`).
 
     Args:
         folder: the scene folder.
+        resolution: read at this resolution (1, 2, 4, 8 divide the size, above 8: a target
+            width; :mod:`polargs_plugin.data.resolution`).
 
     Returns:
         the views in ``cameras.json`` order; K and world_to_camera float64, stokes (3, C, H, W)
@@ -361,7 +413,16 @@ def read_scene_folder(folder: str | Path) -> list[View]:
             an all-dark angle image, NaN/inf in a GT map, or non-finite/singular cameras.
     """
     folder = Path(folder)
-    return _read_views(folder, _read_header(folder))[0]
+    header = _read_header(folder)
+    _check_resolution(folder / CAMERAS_FILE, header, resolution)
+    return _read_views(folder, header, resolution)
+
+
+def _check_resolution(path: Path, header: dict, resolution: int) -> None:
+    try:
+        target_size(header["width"], header["height"], resolution)
+    except ValueError as err:
+        raise PolarInputError(path, f"--resolution: {err}") from None
 
 
 def read_gt_mesh(folder: str | Path, object_only: bool = True) -> o3d.geometry.TriangleMesh:
@@ -398,7 +459,8 @@ def read_scene(folder: str | Path) -> SyntheticScene:
     """
     folder = Path(folder)
     header = _read_header(folder)
-    views, angle_images = _read_views(folder, header)
+    views = _read_views(folder, header)
+    angle_images = [view.stored("stokes").intensities() for view in views]
     shape = (header["height"], header["width"])
     meta_path = folder / META_FILE
     try:

@@ -23,6 +23,7 @@ The background (no hit) is a dim unpolarized backdrop, weakly textured by the wo
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -59,6 +60,7 @@ __all__ = [
     "SceneRenderer",
     "apply_sensor",
     "generate_scene",
+    "generate_scene_views",
     "object_submesh",
 ]
 
@@ -438,6 +440,32 @@ def generate_scene(
         >>> scene.views[0].stokes.shape, scene.angle_images[0].shape
         (torch.Size([3, 3, 32, 32]), torch.Size([4, 3, 32, 32]))
     """
+    out = None
+    for part in generate_scene_views(name, num_views, width, height, seed, noise_std, quantize_bits, refractive_index,
+                                     shadows=shadows, highlight_threshold=highlight_threshold, mask=mask,
+                                     progress=progress):
+        out = part if out is None else _extend(out, part)
+    return out
+
+
+def generate_scene_views(
+    name: str | SceneSpec,
+    num_views: int = 24,
+    width: int = 128,
+    height: int = 128,
+    seed: int = 0,
+    noise_std: float = 0.005,
+    quantize_bits: int = 8,
+    refractive_index: float = 1.5,
+    *,
+    shadows: bool = True,
+    highlight_threshold: float = 0.1,
+    mask: str = "object",
+    progress: bool = False,
+) -> Iterator[SyntheticScene]:
+    """:func:`generate_scene` one view at a time: each item is the scene (mesh, meta) holding
+    only the next view, so a writer can store it before the next is rendered. Arguments as
+    :func:`generate_scene`, whose views are these, in order."""
     if num_views < 1 or width < 1 or height < 1:
         raise ValueError(f"need num_views, width, height >= 1, got {num_views}, {width}, {height}")
     if mask not in MASK_KINDS:
@@ -448,14 +476,22 @@ def generate_scene(
     K = intrinsics(width, height, spec.fov_deg)
     cameras = orbit_cameras(num_views, spec.target, spec.camera_distance, spec.elevations_deg)
     streams = np.random.SeedSequence(seed).spawn(num_views)
-    out = _empty_scene(spec)
+    meta = _meta(spec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
+                 highlight_threshold, mask)
     for index in tqdm(range(num_views), desc=f"rendering {spec.name}", unit="view", disable=not progress):
         clean = renderer.render(K, cameras[index], width, height)
         sensed = apply_sensor(clean.stokes, np.random.default_rng(streams[index]), noise_std, quantize_bits)
-        _append_view(out, index, K, cameras[index], clean, sensed, mask, highlight_threshold)
-    out.meta = _meta(spec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
-                     highlight_threshold, mask)
-    return out
+        part = _empty_scene(spec)
+        _append_view(part, index, K, cameras[index], clean, sensed, mask, highlight_threshold)
+        part.meta = dict(meta)
+        yield part
+
+
+def _extend(scene: SyntheticScene, part: SyntheticScene) -> SyntheticScene:
+    """``scene`` with the views of ``part`` appended (the per-view lists)."""
+    for name in ("views", "angle_images", "diffuse_gt", "specular_gt", "highlight_masks", "overexposed_masks"):
+        getattr(scene, name).extend(getattr(part, name))
+    return scene
 
 
 def _empty_scene(spec: SceneSpec) -> SyntheticScene:

@@ -21,6 +21,7 @@ from torch import Tensor
 
 from polargs_plugin.data.checks import orient_normal_map, warn_image_scale
 from polargs_plugin.data.imageio_utils import UINT_MAX, read_exr, read_image, read_npy
+from polargs_plugin.data.resolution import prepare_view
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.types import View
 
@@ -104,12 +105,15 @@ class ViewCollector:
         folder: the dataset folder; each view's ``source`` and named in the frame warning.
         check_scale: compare the 8-bit pictures of the first :data:`SCALE_CHECK_VIEWS` views with
             their Stokes and warn on a mismatch (:func:`~polargs_plugin.data.checks.warn_image_scale`).
+        resolution: each view is kept at this resolution, its float images as float16
+            (:func:`~polargs_plugin.data.resolution.prepare_view`), as it is added.
         views: the views added so far.
         frames: the frames the GT normal maps added so far were stored in.
     """
 
     folder: Path
     check_scale: bool = False
+    resolution: int = 1
     views: list[View] = field(default_factory=list)
     frames: set[str] = field(default_factory=set)
 
@@ -144,18 +148,18 @@ class ViewCollector:
         mask: Tensor | None = None,
         normal_gt: Tensor | None = None,
     ) -> None:
-        """Append a view: K and world_to_camera as given (float64), Stokes as float32."""
-        self.views.append(
-            View(
-                name=name,
-                K=torch.from_numpy(K),
-                world_to_camera=torch.from_numpy(world_to_camera),
-                stokes=torch.as_tensor(stokes, dtype=torch.float32),
-                mask=mask,
-                normal_gt=normal_gt,
-                source=str(self.folder),
-            )
+        """Append a view: K and world_to_camera as given (float64), Stokes as float32, then at
+        :attr:`resolution` and compact (:func:`~polargs_plugin.data.resolution.prepare_view`)."""
+        view = View(
+            name=name,
+            K=torch.from_numpy(K),
+            world_to_camera=torch.from_numpy(world_to_camera),
+            stokes=torch.as_tensor(stokes, dtype=torch.float32),
+            mask=mask,
+            normal_gt=normal_gt,
+            source=str(self.folder),
         )
+        self.views.append(prepare_view(view, self.resolution))
 
     def finish(self) -> list[View]:
         """The views; warns (at the reader's caller) when GT normal maps were stored in a frame

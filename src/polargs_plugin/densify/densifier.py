@@ -30,7 +30,11 @@ from polargs_plugin.densify.seeding import seed_gaussians, seed_mask, seed_relat
 from polargs_plugin.densify.view_selection import scene_center, select_sources
 from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
 
-__all__ = ["PolarDensifier", "source_depth"]
+__all__ = ["PolarDensifier", "source_depth", "STATE_DTYPE"]
+
+#: Every visited view's last PatchMatch depth and normal are kept (the sources' evidence, the L_n
+#: targets) in this dtype: relative 4.9e-4, far below PatchMatch's own error, at half the memory.
+STATE_DTYPE = torch.float16
 
 
 def source_depth(
@@ -120,8 +124,8 @@ class PolarDensifier:
         pm = self.config.densify.patchmatch
         chosen = select_sources(self._w2c[ref], self._w2c, pm.num_sources, self._center, exclude=ref)
         if chosen:  # the NCC stacks sources, so they must share one size
-            size = self.views[chosen[0]].stokes.shape[-2:]
-            chosen = [j for j in chosen if self.views[j].stokes.shape[-2:] == size]
+            size = (self.views[chosen[0]].height, self.views[chosen[0]].width)
+            chosen = [j for j in chosen if (self.views[j].height, self.views[j].width) == size]
         return chosen
 
     def _densify(self, view: View, render_fn, render: RenderOut | None) -> NewGaussians | None:
@@ -158,7 +162,7 @@ class PolarDensifier:
             cached = self._depths.get(v.name)
             kept = self._targets[v.name][1].to(dev) if cached is not None else None
             src_depths.append(source_depth(r.depth, r.alpha, cfg.alpha_threshold,
-                                           cached.to(dev) if cached is not None else None, kept))
+                                           cached.to(dev, torch.float32) if cached is not None else None, kept))
         all_maps = [self.maps.get(v.name) for v in [view] + src_views]
         polar = all(m is not None for m in all_maps)
         keep = consistency_filter(
@@ -167,8 +171,8 @@ class PolarDensifier:
             dolps=[m.dolp.to(dev) for m in all_maps] if polar else None,
             config=cfg.filters, reference=0,
         )
-        self._depths[view.name] = depth.detach()
-        self._targets[view.name] = (result.normal.detach(), keep.detach())
+        self._depths[view.name] = depth.detach().to(STATE_DTYPE)
+        self._targets[view.name] = (result.normal.detach().to(STATE_DTYPE), keep.detach())
         self.calls += 1
 
         seeds = seed_mask(keep, result.depth, render.depth, render.alpha,
@@ -198,9 +202,11 @@ class PolarDensifier:
         """The latest PatchMatch normals ``N_opt`` of a view and where they are valid.
 
         Returns:
-            (normal (3, H, W) camera frame, valid (1, H, W) bool), or None before the first run.
+            (normal (3, H, W) camera frame, float32; valid (1, H, W) bool), or None before the
+            first run.
         """
-        return self._targets.get(view_name)
+        target = self._targets.get(view_name)
+        return None if target is None else (target[0].to(torch.float32), target[1])
 
     def state_dict(self) -> dict:
         return {
@@ -213,5 +219,5 @@ class PolarDensifier:
     def load_state_dict(self, state: dict) -> None:
         self.calls = int(state["calls"])
         self._generator.set_state(state["generator"])
-        self._depths = dict(state["depths"])
-        self._targets = {k: (v["normal"], v["valid"]) for k, v in state["targets"].items()}
+        self._depths = {k: v.to(STATE_DTYPE) for k, v in state["depths"].items()}
+        self._targets = {k: (v["normal"].to(STATE_DTYPE), v["valid"]) for k, v in state["targets"].items()}

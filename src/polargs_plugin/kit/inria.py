@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from polargs_plugin.config import PolarConfig
+from polargs_plugin.data.resolution import area_resize, nearest_resize
 from polargs_plugin.hooks import PolarHooks
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.kit.append import pad_rows, raw_from_new
@@ -40,18 +41,18 @@ __all__ = ["match_views", "polar_data_by_name", "InriaAdapter"]
 
 
 def _resized(image: Tensor, height: int, width: int, mode: str) -> Tensor:
-    """(..., h, w) -> (..., height, width); Stokes are linear, so area averaging keeps them valid."""
+    """(..., h, w) -> (..., height, width) on the pixel-centre convention of ``--resolution``
+    (:mod:`polargs_plugin.data.resolution`): Stokes area-averaged (they are linear, so the average
+    stays valid), masks sampled at the new pixel centres; a larger size is interpolated bilinearly."""
     if tuple(image.shape[-2:]) == (height, width):
         return image
-    lead = image.shape[:-2]
-    flat = image.reshape(1, -1, *image.shape[-2:]).float()
     if mode == "nearest":
-        out = F.interpolate(flat, size=(height, width), mode="nearest")
-    elif height <= image.shape[-2] and width <= image.shape[-1]:
-        out = F.interpolate(flat, size=(height, width), mode="area")
-    else:
-        out = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False)
-    return out.reshape(*lead, height, width).to(image.dtype)
+        return nearest_resize(image, (width, height))
+    if height <= image.shape[-2] and width <= image.shape[-1]:
+        return area_resize(image, (width, height)).to(image.dtype)
+    flat = image.reshape(1, -1, *image.shape[-2:]).float()
+    out = F.interpolate(flat, size=(height, width), mode="bilinear", align_corners=False)
+    return out.reshape(*image.shape[:-2], height, width).to(image.dtype)
 
 
 def polar_data_by_name(

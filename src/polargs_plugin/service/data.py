@@ -20,7 +20,8 @@ SYNTHETIC_PREFIX = "synthetic:"
 #: Raw-mosaic patterns: mono (IMX250MZR), rgb (IMX250MYR), auto (told from the frames).
 PATTERNS: tuple[str, ...] = ("auto", "mono", "rgb")
 # How the command line spells each option, for messages about options that do not apply.
-_FLAGS = {"pattern": "--pattern", "bit_depth": "--bit-depth", "sfm": "--sfm", "check_pattern": "--no-pattern-check"}
+_FLAGS = {"pattern": "--pattern", "bit_depth": "--bit-depth", "sfm": "--sfm", "check_pattern": "--no-pattern-check",
+          "resolution": "--resolution"}
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,11 @@ class ReaderOptions:
         sfm: a polar folder without a COLMAP model runs SfM (pycolmap) and writes ``sparse/0``
             (default False: a missing model is an error).
         check_pattern: check a given ``pattern`` against every frame (default True).
+        resolution: the size training reads the images at, as the upstream trainers' ``-r``:
+            1 (default), 2, 4 or 8 divide the width and height; a number above 8 is a target
+            width. Images are area-averaged, masks and ground-truth maps sampled at the new
+            pixel centres, K scaled with them (:mod:`polargs_plugin.data.resolution`); every
+            dataset format, bundled scenes included.
     """
 
     fmt: str = "auto"
@@ -44,6 +50,7 @@ class ReaderOptions:
     bit_depth: int | None = None
     sfm: bool = False
     check_pattern: bool = True
+    resolution: int = 1
 
     def reader_kwargs(self) -> dict[str, Any]:
         """The options that differ from the defaults, as the readers' keyword arguments (no ``fmt``)."""
@@ -56,6 +63,8 @@ class ReaderOptions:
             given["sfm"] = True
         if not self.check_pattern:
             given["check_pattern"] = False
+        if self.resolution != 1:
+            given["resolution"] = self.resolution
         return given
 
     def to_dict(self) -> dict[str, Any]:
@@ -76,6 +85,7 @@ class Dataset:
         colour_evidence: for raw mosaics, the share of bright blocks with Bayer colour structure
             per frame that the pattern detection measured.
         sfm_model: the COLMAP model SfM wrote (None when no SfM ran).
+        sfm_seconds: SfM's wall time (None when no SfM ran).
     """
 
     spec: str
@@ -85,6 +95,7 @@ class Dataset:
     pattern: str | None = None
     colour_evidence: dict[str, float | None] = field(default_factory=dict)
     sfm_model: str | None = None
+    sfm_seconds: float | None = None
 
     def record(self) -> dict[str, Any]:
         """The reader options that read the same views again, for a run's ``summary.json``:
@@ -99,7 +110,15 @@ class Dataset:
             record["bit_depth"] = self.options.bit_depth
         if not self.options.check_pattern:
             record["check_pattern"] = False
+        if self.options.resolution != 1:
+            record["resolution"] = self.options.resolution
         return record
+
+    @property
+    def image_size(self) -> tuple[int, int] | None:
+        """(W, H) of the views when they all share one size, else None."""
+        sizes = {(view.width, view.height) for view in self.views}
+        return next(iter(sizes)) if len(sizes) == 1 else None
 
 
 def load_dataset(spec: str, options: ReaderOptions | None = None) -> Dataset:
@@ -115,6 +134,7 @@ def load_dataset(spec: str, options: ReaderOptions | None = None) -> Dataset:
             does not apply, no views, or the reader's own one-line errors.
     """
     options = options or ReaderOptions()
+    _check_resolution(options.resolution)
     if spec.startswith(SYNTHETIC_PREFIX):
         return _load_synthetic(spec, options)
     path = Path(spec)
@@ -140,13 +160,24 @@ def load_dataset(spec: str, options: ReaderOptions | None = None) -> Dataset:
         raise PolarInputError(spec, "the dataset holds no views")
     return Dataset(spec=spec, views=views, format=fmt, options=options, pattern=info.get("pattern"),
                    colour_evidence=dict(info.get("colour_evidence") or {}),
-                   sfm_model=str(info["model"]) if info.get("sfm") and info.get("model") else None)
+                   sfm_model=str(info["model"]) if info.get("sfm") and info.get("model") else None,
+                   sfm_seconds=info.get("sfm_seconds"))
+
+
+def _check_resolution(resolution: int) -> None:
+    from polargs_plugin.data.resolution import check_resolution
+
+    try:
+        check_resolution(resolution)
+    except ValueError as err:
+        raise PolarInputError(f"--resolution {resolution}", str(err)) from None
 
 
 def _load_synthetic(spec: str, options: ReaderOptions) -> Dataset:
+    from polargs_plugin.data.resolution import prepare_view
     from polargs_plugin.data.synthetic import SCENE_NAMES, generate_scene
 
-    given = options.reader_kwargs()
+    given = {k: v for k, v in options.reader_kwargs().items() if k != "resolution"}
     if given:
         flags = ", ".join(_FLAGS[k] for k in given)
         raise PolarInputError(spec, f"{flags} apply to dataset folders, not to a bundled synthetic scene")
@@ -154,6 +185,8 @@ def _load_synthetic(spec: str, options: ReaderOptions) -> Dataset:
     if name not in SCENE_NAMES:
         raise PolarInputError(spec, f"unknown synthetic scene '{name}' (known: {', '.join(SCENE_NAMES)})")
     views = generate_scene(name, num_views=24, width=128, height=128).views
+    if options.resolution != 1:  # at full size the rendered views stay as they are (float32, 1.5 MB)
+        views = [prepare_view(view, options.resolution) for view in views]
     return Dataset(spec=spec, views=views, format="synthetic", options=options)
 
 

@@ -1,10 +1,11 @@
 """Training a run folder with the reference backend, as ``polargs train`` does.
 
 :func:`train_run` owns the run-folder contract (docs/cli.md): it locks the folder, checks that a
-``resume`` continues the same data, chooses the maps cache, trains with periodic checkpoints and
-writes ``summary.json``. A stop request (Ctrl-C) ends the training after the current iteration
-with a final checkpoint (:class:`TrainingInterrupted`); nothing is left of a run that did not
-start.
+``resume`` continues the same data, estimates the peak memory (refusing what is beyond reach) and
+the time (:mod:`polargs_plugin.service.estimates`), chooses the maps cache, trains with periodic
+checkpoints and writes ``summary.json``. A stop request (Ctrl-C) ends the training after the
+current iteration with a final checkpoint (:class:`TrainingInterrupted`); nothing is left of a
+run that did not start.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from polargs_plugin.io import FolderLock, PolarInputError, atomic_write, check_writable, remove_stale_temporaries
 from polargs_plugin.service.data import Dataset, ReaderOptions, dataset_location, load_dataset
+from polargs_plugin.service.estimates import RunEstimate, estimate_memory, estimate_time, peak_memory
 from polargs_plugin.service.fingerprints import compare_fingerprints, fingerprint, read_fingerprint
 from polargs_plugin.service.maps import MAPS_NAME, prepare_maps_cache
 from polargs_plugin.service.runs import CHECKPOINT_NAME, FINGERPRINT_NAME, LOCK_NAME, SUMMARY_NAME
@@ -32,7 +34,7 @@ if TYPE_CHECKING:
     from polargs_plugin.types import View
 
 __all__ = ["CHECKPOINTS_PER_RUN", "TrainRequest", "TrainResult", "StopRequest", "TrainingInterrupted",
-           "build_trainer", "checkpoint_interval", "train_run"]
+           "RunEstimate", "build_trainer", "checkpoint_interval", "estimate_memory", "estimate_time", "train_run"]
 
 #: Default periodic checkpoints: this many per run (every 10 % of the iterations).
 CHECKPOINTS_PER_RUN = 10
@@ -62,6 +64,8 @@ class TrainRequest:
         command: the command line, recorded in the folder's lock.
         labels: how the settings were chosen (``schedule``, ``preset``, ``switches``,
             ``config_file``), recorded in ``summary.json``.
+        memory_check: refuse to start when the estimated peak memory is beyond reach
+            (:mod:`polargs_plugin.service.estimates`; default True).
     """
 
     dataset: str
@@ -74,6 +78,7 @@ class TrainRequest:
     checkpoint_every: int | None = None
     command: str = "polargs train"
     labels: dict[str, Any] = field(default_factory=dict)
+    memory_check: bool = True
 
 
 @dataclass
@@ -205,12 +210,14 @@ class _Progress:
         trainer: the trainer once built.
         wrote_fingerprint: this run wrote fingerprint.json.
         discarded: an error left nothing to resume, and what this run wrote was removed.
+        estimate: the memory and time estimate printed before training.
     """
 
     stage: str = "before training started"
     trainer: Any = None
     wrote_fingerprint: bool = False
     discarded: bool = False
+    estimate: RunEstimate | None = None
 
 
 def _discard_untrained(out: Path, checkpoint: Path, maps_existed: bool, progress: _Progress) -> bool:
@@ -286,7 +293,7 @@ def train_run(request: TrainRequest, notify: Notify = _ignore, stop: StopRequest
             lock.release()
             if created and (progress.stage == "before training started" or progress.discarded):
                 _remove_if_empty(out)
-    summary = _summary(request, dataset, figures, every, time.perf_counter() - start)
+    summary = _summary(request, dataset, figures, every, time.perf_counter() - start, progress.estimate)
     try:
         with atomic_write(out / SUMMARY_NAME) as handle:
             json.dump(summary, handle, indent=2)
@@ -303,7 +310,12 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
         how = "given" if request.reader.pattern not in (None, "auto") else "told from the frames"
         notify(f"raw mosaics: {dataset.pattern} ({how}; Bayer colour structure in {evidence or '-'} of bright blocks)")
     if dataset.sfm_model:
-        notify(f"SfM: model written to {dataset.sfm_model}")
+        took = "" if dataset.sfm_seconds is None else f" in {dataset.sfm_seconds:.0f} s"
+        notify(f"SfM: model written to {dataset.sfm_model}{took}")
+    estimate = progress.estimate = estimate_memory(dataset.views, request.train, request.polar)
+    notify(estimate.memory_line())
+    if request.memory_check and not estimate.fits:
+        raise PolarInputError(request.dataset, estimate.refusal())
     prints = fingerprint(dataset.views)
     if request.resume:
         _check_same_data(request, prints, notify)
@@ -318,6 +330,8 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
         trainer.load_checkpoint(checkpoint)
     if trainer.iteration >= request.train.iterations:
         raise PolarInputError(checkpoint, f"already at iteration {trainer.iteration}; give a larger --iters to continue")
+    estimate = progress.estimate = estimate_time(estimate, trainer, request.train.iterations)
+    notify(estimate.time_line(request.train.iterations))
     every = checkpoint_interval(request.checkpoint_every, request.train.iterations)
     fingerprint_path = request.out / FINGERPRINT_NAME
     if not request.resume or not fingerprint_path.is_file():
@@ -333,7 +347,7 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
 
 
 def _summary(request: TrainRequest, dataset: Dataset, figures: dict[str, Any], every: int,
-             wall_seconds: float) -> dict[str, Any]:
+             wall_seconds: float, estimate: RunEstimate | None) -> dict[str, Any]:
     polar = request.polar
     labels = dict(request.labels)
     config_file = labels.get("config_file")
@@ -342,6 +356,8 @@ def _summary(request: TrainRequest, dataset: Dataset, figures: dict[str, Any], e
         "dataset_format": dataset.format,
         "reader": dataset.record(),
         "num_views": len(dataset.views),
+        "image_size": dataset.image_size,
+        "sfm_seconds": dataset.sfm_seconds,
         "polar": polar is not None,
         "schedule": labels.get("schedule"),
         "preset": labels.get("preset") if polar is not None else None,
@@ -352,6 +368,8 @@ def _summary(request: TrainRequest, dataset: Dataset, figures: dict[str, Any], e
         "checkpoint_every": every,
         "maps_cache": None if polar is None else polar.cache_dir,
         "wall_seconds": wall_seconds,
+        "peak_memory_bytes": peak_memory(),
+        "estimate": None if estimate is None else {"peak_memory_bytes": estimate.peak_bytes, "seconds": estimate.seconds},
         **figures,
         "config": request.train.to_dict(),
         "polar_config": None if polar is None else polar.to_dict(),

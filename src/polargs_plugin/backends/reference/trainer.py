@@ -68,6 +68,10 @@ class TrainingDiverged(RuntimeError):
 
 
 CPU_EPS2D = 0.1  # the CPU preset's screen dilation (pixels^2), TrainConfig.cpu
+# The progress bar's remaining time comes from the rate averaged over the last ~1/this iterations
+# (tqdm's smoothing): long enough to spread the periodic Dense calls, short enough to follow the
+# model's growth.
+_RATE_SMOOTHING = 0.01
 
 
 def _is_torch_device(name: str, config: Any) -> bool:
@@ -225,8 +229,10 @@ class Trainer:
         self.hooks = hooks
         self.extent = scene_extent(self.views)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
-        self.targets = [self._target(v) for v in self.views]
-        self.edge_bands = [self._edge_band(v) for v in self.views]
+        for view in self.views:
+            _check_channels(view)
+        # one byte a pixel, so kept; the targets (12 bytes a pixel) are built when used
+        self.edge_bands = [self.edge_band(v) for v in self.views]
         factor = cfg.schedule_scale
         self.sh_interval = max(1, round(cfg.sh_increase_every * factor))
         lrs = dataclasses.replace(cfg.lrs, means_max_steps=max(1, round(cfg.lrs.means_max_steps * factor)))
@@ -251,18 +257,19 @@ class Trainer:
         self.last_logs: Mapping[str, float] = {}
 
     # --------------------------------------------------------------------- pieces
-    def _target(self, view: View) -> Tensor:
+    def target(self, view: View) -> Tensor:
+        """(3, H, W) colour target of ``view``: s0 / 2 clamped to [0, 1], mono repeated to RGB, the
+        background outside the mask (``use_masks``). Built from the view's stored images when asked
+        (a step keeps only its own view's target)."""
         image = view.image.float().clamp(0, 1)
         if image.shape[0] == 1:
             image = image.expand(3, -1, -1)
-        if image.shape[0] != 3:
-            raise PolarInputError(view.source or view.name, f"expected 1 or 3 colour channels, got {image.shape[0]}")
         if self.config.use_masks and view.mask is not None:
             m = view.mask.to(image).reshape(1, view.height, view.width)
             image = image * m + self.background.reshape(3, 1, 1) * (1 - m)
         return image.contiguous()
 
-    def _edge_band(self, view: View) -> Tensor | None:
+    def edge_band(self, view: View) -> Tensor | None:
         """(1, H, W) bool: the pixels the colour loss leaves out (``TrainConfig.mask_edge_band``), or None."""
         width = self.config.mask_edge_band
         if width == 0 or not self.config.use_masks or view.mask is None:
@@ -310,7 +317,8 @@ class Trainer:
         if it % self.sh_interval == 0:
             model.active_sh_degree = min(model.active_sh_degree + 1, model.max_sh_degree)
         index = self._next_view()
-        view, target, band = self.views[index], self.targets[index], self.edge_bands[index]
+        view, band = self.views[index], self.edge_bands[index]
+        target = self.target(view)
 
         # The hooks get the activations the render used (one set of activation nodes to differentiate).
         state = model.state() if self.hooks is not None else None
@@ -346,6 +354,20 @@ class Trainer:
         self.last_logs = logs
         return logs
 
+    def time_step(self, view: View, repeats: int = 2) -> float:
+        """Seconds of the cheapest of ``repeats`` renders of ``view`` with the colour loss and its
+        backward, on the current model, which is left as it was (the gradients are dropped; no
+        optimizer step, no density statistics, no random numbers drawn). The first repeat also
+        pays for compiling and warming what the step uses."""
+        best = math.inf
+        for _ in range(max(1, repeats)):
+            start = time.perf_counter()
+            render = self.render(view)
+            self.base_loss(render.color, self.target(view)).backward()
+            best = min(best, time.perf_counter() - start)
+            self.model.optimizer.zero_grad(set_to_none=True)
+        return best
+
     def train(self, until: int | None = None, checkpoint: str | Path | None = None, checkpoint_every: int = 0) -> dict[str, Any]:
         """Train up to iteration ``until`` (default ``config.iterations``).
 
@@ -371,6 +393,7 @@ class Trainer:
             unit="it",
             disable=not self.config.progress,
             dynamic_ncols=True,
+            smoothing=_RATE_SMOOTHING,
         )
         with bar:
             while self.iteration < end:
@@ -404,7 +427,7 @@ class Trainer:
     @torch.no_grad()
     def evaluate(self) -> float:
         """Mean PSNR (dB) of the rendered training views against their (masked) targets."""
-        values = [_psnr(float(((self.render(v).color - t) ** 2).mean())) for v, t in zip(self.views, self.targets)]
+        values = [_psnr(float(((self.render(v).color - self.target(v)) ** 2).mean())) for v in self.views]
         return float(np.mean(values))
 
     # ------------------------------------------------------------------ checkpoints
@@ -556,6 +579,11 @@ def _check_finite_parameters(model: GaussianModel, where: str) -> None:
     named = [f"'{name}' has {count} of {getattr(model, name).numel()}" for name, count in bad.items() if count]
     if named:
         raise TrainingDiverged(f"{where}: non-finite parameters: {', '.join(named)}")
+
+
+def _check_channels(view: View) -> None:
+    if view.channels not in (1, 3):
+        raise PolarInputError(view.source or view.name, f"expected 1 or 3 colour channels, got {view.channels}")
 
 
 def _check_ssim_weight(config: TrainConfig, hooks: TrainingHooks | None) -> None:
