@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from polargs_plugin.types import View
 
 __all__ = ["ColmapCamera", "read_colmap_model", "write_colmap_text", "write_colmap_binary", "find_colmap_model",
-           "write_colmap_scene"]
+           "write_colmap_scene", "write_colmap_image", "write_colmap_models"]
 
 # COLMAP camera models: id -> (name, number of params).
 # The pinhole params are f, cx, cy (1 focal) or fx, fy, cx, cy (2 focals); the rest is distortion.
@@ -242,6 +242,27 @@ def find_colmap_model(folder: str | os.PathLike) -> Path | None:
     return None
 
 
+def write_colmap_image(folder: str | os.PathLike, view: "View") -> dict[str, ColmapCamera]:
+    """Write ``folder/images/<name>.png`` (the training colour s0 / 2 of ``view``, 8 bits) and
+    return ``{image name: its camera}`` for :func:`write_colmap_models`."""
+    from polargs_plugin.data.imageio_utils import write_png
+
+    image = view.image.clamp(0.0, 1.0).permute(1, 2, 0).numpy()
+    write_png(Path(folder) / "images" / f"{view.name}.png", image)
+    camera = ColmapCamera(view.K.double().numpy(), view.world_to_camera.double().numpy(), view.width, view.height)
+    return {f"{view.name}.png": camera}
+
+
+def write_colmap_models(folder: str | os.PathLike, cameras: dict[str, ColmapCamera], points: np.ndarray,
+                        colors: np.ndarray | None = None) -> None:
+    """The sparse model of :func:`write_colmap_scene` (PINHOLE ``cameras``, ``points`` as the
+    sparse points) in ``sparse/0`` and ``sparse``, each as text and binary files."""
+    folder = Path(folder)
+    for model_dir in (folder / "sparse" / "0", folder / "sparse"):
+        write_colmap_text(model_dir, cameras, points, colors)
+        write_colmap_binary(model_dir, cameras, points, colors)
+
+
 def write_colmap_scene(folder: str | os.PathLike, views: "Sequence[View]", points: np.ndarray,
                        colors: np.ndarray | None = None) -> Path:
     """A scene as an upstream trainer's COLMAP input: ``images/<name>.png`` (the training colour
@@ -250,17 +271,8 @@ def write_colmap_scene(folder: str | os.PathLike, views: "Sequence[View]", point
     read it, and in ``sparse``, where PGSR does, each as text and as binary files (COLMAP's own
     default, the only form gsplat 1.5's parser reads). Image names are the view names, so a
     patched trainer finds each camera's polarimetric view by name."""
-    from polargs_plugin.data.imageio_utils import write_png
-
-    folder = Path(folder)
-    cameras = {}
+    cameras: dict[str, ColmapCamera] = {}
     for view in views:
-        image = view.image.clamp(0.0, 1.0).permute(1, 2, 0).numpy()
-        write_png(folder / "images" / f"{view.name}.png", image)
-        cameras[f"{view.name}.png"] = ColmapCamera(
-            view.K.double().numpy(), view.world_to_camera.double().numpy(), view.width, view.height
-        )
-    for model_dir in (folder / "sparse" / "0", folder / "sparse"):
-        write_colmap_text(model_dir, cameras, points, colors)
-        write_colmap_binary(model_dir, cameras, points, colors)
-    return folder
+        cameras.update(write_colmap_image(folder, view))
+    write_colmap_models(folder, cameras, points, colors)
+    return Path(folder)
