@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+import types
 import warnings
 from pathlib import Path
 
@@ -249,6 +250,18 @@ def _loss_door():
 
 
 _TOO_LATE = "expected a tensor on the device the trainer renders on"
+def _without_stokes(view):
+    """A duck-typed view (a trainer's own camera object) whose Stokes are missing; a
+    :class:`View` itself refuses ``stokes=None`` when it is built."""
+    fields = {field.name: getattr(view, field.name) for field in dataclasses.fields(view)}
+    return types.SimpleNamespace(**{**fields, "stokes": None})
+
+
+def test_view_refuses_missing_stokes_when_built():
+    with pytest.raises(TypeError, match=r"^View\.stokes is required$"):
+        dataclasses.replace(_view(), stokes=None)
+
+
 LOSS_FAULTS = [
     # (case, change of (iteration, view, render, gaussians), the message of hooks.loss)
     ("float64 colour", lambda it, v, r, g: (it, v, dataclasses.replace(r, color=r.color.double()), g),
@@ -260,7 +273,7 @@ LOSS_FAULTS = [
     ("Gaussians on the meta device",
      lambda it, v, r, g: (it, v, r, dataclasses.replace(g, scales=g.scales.detach().to("meta"))),
      f"hooks.loss: gaussians.scales is on the meta device, which holds no values; {_TOO_LATE}"),
-    ("a view without Stokes", lambda it, v, r, g: (it, dataclasses.replace(v, stokes=None), r, g),
+    ("a view without Stokes", lambda it, v, r, g: (it, _without_stokes(v), r, g),
      "hooks.loss: view 'v0' has no Stokes (view.stokes is NoneType); expected a (3, C, H, W) tensor"),
     ("iteration 0", lambda it, v, r, g: (0, v, r, g),
      "hooks.loss: iteration must be an integer >= 1 (iterations are 1-based), got 0"),
@@ -292,7 +305,7 @@ DENSIFY_FAULTS = [
     ("render_fn rendering on the meta device",
      lambda it, v, fn, r: (it, v, lambda view: dataclasses.replace(fn(view), alpha=fn(view).alpha.to("meta")), None),
      f"hooks.densify: render_fn(view 'v0').alpha is on the meta device, which holds no values; {_TOO_LATE}"),
-    ("a view without Stokes", lambda it, v, fn, r: (it, dataclasses.replace(v, stokes=None), fn, r),
+    ("a view without Stokes", lambda it, v, fn, r: (it, _without_stokes(v), fn, r),
      "hooks.densify: view 'v0' has no Stokes (view.stokes is NoneType); expected a (3, C, H, W) tensor"),
     ("iteration 0", lambda it, v, fn, r: (0, v, fn, r),
      "hooks.densify: iteration must be an integer >= 1 (iterations are 1-based), got 0"),
