@@ -23,24 +23,27 @@ SCENE_MARKERS = ("scene.json", "cameras.json")
 
 @dataclass(frozen=True)
 class SceneRequest:
-    """A bundled scene to render (``polargs generate --help`` lists the scenes).
+    """A bundled scene, or a scene of the procedural family, to render (``polargs generate --help``
+    lists the scenes; docs/scene-family.md describes the family).
 
     Attributes:
-        scene: the scene's name.
-        views: number of cameras (default 24).
-        width, height: image size in pixels (default 128x128).
-        seed: sensor-noise seed (default 0).
-        noise_std: Gaussian noise std per angle image, [0, 1] units; None: the generator's 0.005.
+        scene: the scene's name, or ``family`` (the family scene of ``seed``).
+        views: number of cameras; None: 24 for a bundled scene, the seed's for the family.
+        width, height: image size in pixels; None: 128x128 for a bundled scene, the seed's for the family.
+        seed: sensor-noise seed (default 0); for the family also the scene's seed.
+        noise_std: Gaussian noise std per angle image, [0, 1] units; None: the generator's 0.005,
+            the seed's for the family.
         bits: sensor bit depth, 8 or 16; None: the generator's 8.
-        refractive_index: n of the Fresnel DoLP; None: the generator's 1.5.
+        refractive_index: n of the Fresnel DoLP; None: the generator's 1.5 (a family scene's
+            materials have their own).
         mask: what the masks mark: ``object`` (default) or ``surface`` (every surface, a floor too).
         pictures: also write AoLP / DoLP pictures per view and an overview under ``pictures/``.
     """
 
     scene: str
-    views: int = 24
-    width: int = 128
-    height: int = 128
+    views: int | None = None
+    width: int | None = None
+    height: int | None = None
     seed: int = 0
     noise_std: float | None = None
     bits: int | None = None
@@ -50,12 +53,18 @@ class SceneRequest:
 
     def render(self, progress: bool = False) -> "SyntheticScene":
         """Render the scene (the generator's defaults for every setting left None)."""
+        from polargs_plugin.data.family import FAMILY, generate_family_scene
         from polargs_plugin.data.synthetic import generate_scene
 
-        given = {"noise_std": self.noise_std, "quantize_bits": self.bits, "refractive_index": self.refractive_index,
-                 "mask": self.mask}
-        return generate_scene(self.scene, num_views=self.views, width=self.width, height=self.height, seed=self.seed,
-                              progress=progress, **{k: v for k, v in given.items() if v is not None})
+        given = {"noise_std": self.noise_std, "quantize_bits": self.bits, "mask": self.mask}
+        given = {k: v for k, v in given.items() if v is not None}
+        if self.scene == FAMILY:
+            size = None if self.width is None and self.height is None else (self.width or self.height, self.height or self.width)
+            return generate_family_scene(self.seed, num_views=self.views, size=size, progress=progress, **given)
+        if self.refractive_index is not None:
+            given["refractive_index"] = self.refractive_index
+        return generate_scene(self.scene, num_views=self.views or 24, width=self.width or 128, height=self.height or 128,
+                              seed=self.seed, progress=progress, **given)
 
 
 @dataclass
@@ -150,9 +159,12 @@ def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = Fa
 
 def scene_statistics(scene: "SyntheticScene") -> dict[str, Any]:
     """What a user checks first: the object's share of the pixels, the highlights' and the
-    overexposed pixels' share of the object, and the median DoLP on the object."""
+    overexposed pixels' share of the object, the median DoLP on the object, and (when the scene
+    has its per-view visibility) the shares of the object's seen surface area in each visibility
+    class (``visibility``: {many, few, grazing}; docs/evaluation.md) and the unseen share."""
     import torch
 
+    from polargs_plugin.data.visibility import class_fractions, classify_counts, triangle_counts
     from polargs_plugin.optics.stokes import dolp_from_stokes
 
     mask = torch.stack([v.mask for v in scene.views])
@@ -161,10 +173,18 @@ def scene_statistics(scene: "SyntheticScene") -> dict[str, Any]:
     def fraction(masks: list) -> float:
         return float(torch.stack(masks).sum() / mask.sum().clamp(min=1))
 
-    return {
+    stats = {
         "object_fraction": float(mask.float().mean()),
         "mesh_vertices": len(scene.mesh_vertices),
         "highlight_fraction": fraction(scene.highlight_masks),
         "overexposed_fraction": fraction(scene.overexposed_masks),
         "dolp_median": float(dolp[mask].median()),
     }
+    if scene.visibility is not None:
+        vertices, triangles = scene.object_mesh()
+        centres = [v.camera_center.double().numpy() for v in scene.views]
+        well, grazing, area = triangle_counts(vertices, triangles, scene.visibility, centres)
+        codes = classify_counts(well, grazing)
+        stats["visibility"] = class_fractions(codes, area)
+        stats["unseen_fraction"] = float(area[codes < 0].sum() / area.sum())
+    return stats
