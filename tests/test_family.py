@@ -172,3 +172,19 @@ def test_generated_family_scene_carries_its_draw_and_visibility():
     again = generate_family_scene(3, num_views=4, size=(40, 40))
     for a, b in zip(scene.angle_images, again.angle_images):
         assert torch.equal(a, b)
+
+
+def test_the_ablation_spells_a_family_scene_family_colon_seed(tmp_path):
+    from polargs_plugin.ablation.scenes import parse_scene
+    from polargs_plugin.data.synthetic import GENERATOR_VERSION
+
+    settings = family_settings(16)
+    spec = parse_scene("family:16", tmp_path)
+    assert (spec.name, spec.bundled, spec.seed) == ("family-16", "family", 16)
+    assert (spec.views, spec.width, spec.height) == (settings.num_views, settings.size, settings.size)
+    size = settings.size
+    assert spec.path == str(tmp_path.resolve() / f"family-16-{settings.num_views}v-{size}x{size}-g{GENERATOR_VERSION}")
+    smaller = parse_scene("family:16", tmp_path, views=6, width=32, height=32)
+    assert (smaller.views, smaller.width) == (6, 32) and smaller.path != spec.path
+    with pytest.raises(ValueError, match="family:SEED"):
+        parse_scene("family:x", tmp_path)

@@ -109,9 +109,10 @@ def _seen_in_depth_map(cam: np.ndarray, K: np.ndarray, depth: np.ndarray, tolera
     """(N,) bool: the camera-frame points ``cam`` (N, 3) lie on the surface of the depth map ``depth``
     (H, W; 0 = no surface): in front of the camera, inside the image, and between the depths of
     the (up to) four pixels whose centres surround their projection, within ``tolerance_px`` pixel
-    footprints. The bracket, not one pixel's depth, so that a surface seen at a grazing angle (its
-    depth changes by several footprints from pixel to pixel) still passes, while a point hidden
-    behind another surface (beyond every neighbour) does not."""
+    footprints, widened by their spread. The bracket, not one pixel's depth, so that a surface seen
+    at a grazing angle (its depth changes by several footprints from pixel to pixel) still passes,
+    up to its silhouette, while a point hidden behind another surface (beyond every neighbour and
+    their spread) does not."""
     height, width = depth.shape
     z = cam[:, 2]
     front = z > 1e-9
@@ -129,7 +130,9 @@ def _seen_in_depth_map(cam: np.ndarray, K: np.ndarray, depth: np.ndarray, tolera
             valid = d > 0
             low = np.where(valid, np.minimum(low, d), low)
             high = np.where(valid, np.maximum(high, d), high)
-    tolerance = tolerance_px * zs / K[0, 0]
+    # the spread of the neighbours' depths widens the bracket by itself: a point between a surface's
+    # last pixel centre and its silhouette (seen at a grazing angle) lies up to one such step beyond it
+    tolerance = tolerance_px * zs / K[0, 0] + np.where(np.isfinite(high), high - low, 0.0)
     return inside & (low - tolerance <= z) & (z <= high + tolerance)
 
 
