@@ -537,6 +537,10 @@ class DensifyConfig(CheckedConfig):
         stride: seeds on every ``stride``-th pixel each way; >= 1. Default 2.
         max_new_per_call: at most this many new Gaussians a call (a random subset); >= 0.
             Default 5000.
+        budget_fraction: all calls together append at most this fraction of the number of
+            Gaussians the model had at the first Dense call (a random subset of a call's seeds
+            once the budget runs short; PatchMatch and L_n's targets go on); >= 0, or None: no
+            budget beyond ``max_new_per_call``. Default None.
         initial_opacity: the seeded Gaussians' opacity; in (0, 1). Default 0.5.
         alpha_threshold: rendered alpha below which a pixel is a hole (seeded); above it a source
             view's rendered depth serves the consistency filters; in [0, 1]. Default 0.5.
@@ -567,6 +571,7 @@ class DensifyConfig(CheckedConfig):
     interval: int = field(default=100, metadata=at_least(1))
     stride: int = field(default=2, metadata=at_least(1))
     max_new_per_call: int = field(default=5000, metadata=at_least(0))
+    budget_fraction: float | None = field(default=None, metadata=at_least(0))
     initial_opacity: float = field(default=0.5, metadata=within(0, 1, low_open=True, high_open=True))
     alpha_threshold: float = field(default=0.5, metadata=within(0, 1))
     seed_depth_footprints: float = field(default=0.88, metadata=at_least(0))
