@@ -512,6 +512,10 @@ class FilterConfig(CheckedConfig):
             :meth:`PolarConfig.synthetic` sets ``"perspective"``.
         max_photometric_cost: the densifier keeps only pixels whose PatchMatch photometric cost
             (1 - NCC, in [0, 2]) is at most this; in [0, 2]. Default 0.9 (COLMAP's minimum NCC 0.1).
+        max_incidence_deg: a view supports a pixel only when it sees the pixel's surface (the
+            point and its normal) from its front at an incidence angle below this: a source
+            counts as consistent only then, and the reference view's own pixel is kept only then
+            (docs/patchmatch.md "Filters"); in (0, 90], or None: no such test. Default None.
     """
 
     max_reprojection_px: float = field(default=1.0, metadata=at_least(0))
@@ -522,6 +526,7 @@ class FilterConfig(CheckedConfig):
     polar_dolp_reference: float = field(default=0.1, metadata=above(0))
     azimuth_model: AzimuthModel = "orthographic"
     max_photometric_cost: float = field(default=0.9, metadata=within(0, 2))
+    max_incidence_deg: float | None = field(default=None, metadata=within(0, 90, low_open=True))
 
 
 @dataclass
