@@ -186,17 +186,55 @@ def test_mesh_error_flags_the_vertices_the_evaluation_measures(tmp_path):
     assert np.array_equal(error["evaluated"], culled)
     assert "evaluated" not in mesh_error(tmp_path / "pred.ply", tmp_path / "gt.ply")  # without views: not claimed
 
-def _fake_run(out: Path, variant: str, seed: int, figures: dict, chamfer: dict | None = None) -> None:
+def _fake_run(out: Path, variant: str, seed: int, figures: dict, chamfer: dict | None = None, scene: str = SCENE) -> None:
     """A run folder as run_cell writes it, summary.json (and metrics.json) only."""
     from polargs_plugin.ablation.cell import RUN_FORMAT
 
-    folder = out / f"{SCENE}__{variant}__hull__s{seed}"
+    folder = out / f"{scene}__{variant}__hull__s{seed}"
     folder.mkdir(parents=True)
-    summary = {"format": RUN_FORMAT, "scene": {"name": SCENE}, "variant": variant, "seed": seed, "init": "hull",
+    summary = {"format": RUN_FORMAT, "scene": {"name": scene}, "variant": variant, "seed": seed, "init": "hull",
                "init_used": "hull", "figures": figures, "timings": {"total": 1.0}, "git": {"commit": "abc"}}
     (folder / "summary.json").write_text(json.dumps(summary))
     if chamfer is not None:
         (folder / "metrics.json").write_text(json.dumps({"chamfer": chamfer}))
+
+
+def test_the_verdict_needs_both_chamfer_figures_and_the_means_and_dense_budget_add_up(tmp_path):
+    """Full against reg: better where both Chamfer figures fall, worse where both rise, level within
+    1 %, "disagree" where they move apart; the means over scenes, the worst scene and what Dense's
+    appends bought are the plain arithmetic of the per-run figures; a run folder from before the
+    visible-surface figures gets them from its metrics.json."""
+    # (capped, visible) Chamfer of reg and full per scene, and full's appended Gaussians
+    cases = {"a": ((0.010, 0.020), (0.008, 0.015)), "b": ((0.010, 0.020), (0.012, 0.024)),
+             "c": ((0.010, 0.020), (0.0101, 0.0199)), "d": ((0.010, 0.020), (0.009, 0.023))}
+    for scene, ((reg_capped, reg_visible), (full_capped, full_visible)) in cases.items():
+        for variant, capped, visible, appended in (("reg", reg_capped, reg_visible, 0),
+                                                    ("no-dense", reg_capped, reg_visible, 0),
+                                                    ("full", full_capped, full_visible, 2000)):
+            figures = {"chamfer": capped, "chamfer_visible": visible, "normal_mae_deg": 10.0, "appended_total": appended}
+            _fake_run(tmp_path, variant, 0, figures, scene=scene)
+    # a run folder written before the visible figures were in the summary: they come from metrics.json
+    _fake_run(tmp_path, "reg", 0, {"chamfer": 0.01, "normal_mae_deg": 10.0}, scene="old",
+              chamfer={"chamfer": 0.01, "chamfer_visible": 0.03, "completeness_by_visibility": {"grazing": 0.05},
+                       "visibility_shares": {"grazing": 0.2}})
+    results = gather(tmp_path)
+    verdict = {(v["scene"], v["reference"]): v for v in results["verdicts"] if v["variant"] == "full"}
+    assert {scene: verdict[(scene, "reg")]["verdict"] for scene in cases} == {
+        "a": "better", "b": "worse", "c": "level", "d": "disagree"}
+    assert verdict[("d", "reg")]["capped"] == pytest.approx(-0.1) and verdict[("d", "reg")]["visible"] == pytest.approx(0.15)
+    means = {m["variant"]: m for m in results["scene_means"]}
+    assert means["full"]["scenes"] == list(cases)  # "old" has no full run: left out of the means
+    full_mean = sum(v for _, (_, v) in cases.values()) / 4
+    assert means["full"]["chamfer_visible"] == pytest.approx(full_mean)
+    assert means["full"]["chamfer_visible_vs_reg"] == pytest.approx(full_mean / 0.020 - 1)
+    assert means["full"]["worst_visible_vs_reg"] == pytest.approx(0.2)  # scene b
+    budget = {b["scene"]: b for b in results["dense_budget"]}
+    assert budget["a"]["reference"] == "no-dense" and budget["a"]["appended"] == 2000
+    assert budget["a"]["change_per_thousand"] == pytest.approx((0.015 / 0.020 - 1) / 2)
+    old = next(e for e in results["table"] if e["scene"] == "old")
+    assert old["chamfer_visible"]["mean"] == 0.03 and old["completeness_grazing"]["mean"] == 0.05
+    markdown = (tmp_path / "results.md").read_text()
+    assert "**the Chamfer figures disagree**" in markdown and "### Means over the scenes" in markdown
 
 
 def test_uncapped_figures_reach_the_results(tmp_path):

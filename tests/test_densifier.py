@@ -83,6 +83,32 @@ def test_fills_a_render_hole_with_gaussians_on_the_plane():
     assert (ang[valid[0]] < 5).float().mean() > 0.9
 
 
+@pytest.mark.slow
+def test_the_budget_caps_the_appends_of_the_whole_run_at_a_fraction_of_the_model():
+    """budget_fraction 0.1 of a 100-Gaussian model: 10 Gaussians over every call, the first call
+    takes what it can, later ones get nothing, and PatchMatch's normal targets still refresh; the
+    budget survives a checkpoint."""
+    from types import SimpleNamespace
+
+    views, renders, maps, render_fn, cfg = _setup()
+    free = PolarDensifier(cfg, views, maps)
+    unbounded = free(cfg.densify.start_iter, views[0], render_fn, None)
+    assert unbounded is not None and len(unbounded) > 10  # more seeds than the budget below allows
+    cfg.densify.budget_fraction = 0.1
+    model = SimpleNamespace(means=torch.zeros(100, 3))
+    dens = PolarDensifier(cfg, views, maps)
+    first = dens(cfg.densify.start_iter, views[0], render_fn, model)
+    assert len(first) == 10 and dens.budget == 10 and dens.appended == 10
+    twice = SimpleNamespace(means=torch.zeros(200, 3))  # the budget is fixed at the first call
+    second = dens(cfg.densify.start_iter + cfg.densify.interval, views[0], render_fn, twice)
+    assert second is None and dens.appended == 10 and dens.calls == 2
+    resumed = PolarDensifier(cfg, views, maps)
+    resumed.load_state_dict(dens.state_dict())
+    assert (resumed.budget, resumed.appended) == (10, 10)
+    with pytest.raises(ValueError, match="needs the current Gaussians"):
+        PolarDensifier(cfg, views, maps)(cfg.densify.start_iter, views[0], render_fn, None)
+
+
 def test_seeding_threshold_is_a_number_of_pixel_footprints():
     """The same number of footprints at any resolution: the CPU preset's 0.88 is 0.5 % of the depth
     at the bundled scenes' 128 px (f = 175.8) and 2 % at this file's 40 px (f = 44)."""

@@ -87,3 +87,35 @@ def test_low_dolp_azimuth_noise_rejects_only_in_proportion_to_its_signal():
         keep = consistency_filter(depths, wrong, views, aolps=aolps, dolps=dolps, reference=0, config=cfg)
         # a few grazing pixels have a smaller turn of the predicted AoLP in the sources
         assert abs(keep[geometric].float().mean() - kept) < 0.1
+
+
+def test_incidence_test_keeps_what_two_sources_and_the_reference_see_steeply():
+    """max_incidence_deg 45 on the sphere: a pixel stays only when the reference and at least two
+    consistent sources see its point at an incidence below 45 deg, computed here independently
+    from world points, world normals and camera centres."""
+    from polargs_plugin.densify.filters import incidence_cosine
+
+    views, renders, depths, normals, aolps, dolps = _scene()
+    loose = consistency_filter(depths, normals, views, reference=0, config=FilterConfig(use_polar=False))
+    strict = consistency_filter(depths, normals, views, reference=0,
+                                config=FilterConfig(use_polar=False, max_incidence_deg=45.0))
+    ref = views[0]
+    h, w = depths[0].shape[-2:]
+    v, u = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
+    K, R, t = ref.K.double(), ref.world_to_camera[:3, :3].double(), ref.world_to_camera[:3, 3].double()
+    rays = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)]).double()
+    world = torch.einsum("ji,jhw->ihw", R, depths[0][0].double() * rays - t[:, None, None])
+    normal = torch.einsum("ji,jhw->ihw", R, normals[0].double())
+
+    def cosine(view) -> torch.Tensor:
+        towards = view.camera_center.double()[:, None, None] - world
+        return (normal * towards).sum(0) / towards.norm(dim=0)
+
+    limit = math.cos(math.radians(45.0))
+    steep_sources = sum((cosine(view) >= limit).long() for view in views[1:])
+    expected = loose[0] & (cosine(ref) >= limit) & (steep_sources >= 2)
+    assert not (strict[0] & ~loose[0]).any()
+    assert expected.sum() > 50 and (loose[0] & ~expected).sum() > 50  # the test removes a real share
+    assert (strict[0] == expected).float().mean() > 0.98
+    assert torch.allclose(incidence_cosine(depths[0], normals[0], ref.K, ref.world_to_camera, ref.world_to_camera)[0][loose[0]],
+                          cosine(ref)[loose[0]].float(), atol=1e-4)

@@ -367,3 +367,84 @@ def test_object_region_leaves_out_an_occluder_in_front_of_the_object():
     assert len(on_wall) > 150 and (np.abs(on_wall[:, 2]) < 2).all()
     assert in_object_region(on_wall, ball, [view], 0).all()
     assert not in_object_region(on_wall, ball, [view], 0, occluder=ball + wall).any()
+
+
+# --- the visible-surface metric and the visibility classes against an analytic case ---------------
+
+
+def sphere_depth_view(eye: np.ndarray, size: int = 256, focal: float = 256.0) -> View:
+    """A view of the unit sphere with its exact ground-truth depth map (ray-sphere intersection)."""
+    w2c = look_at(eye)
+    K = torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]], dtype=torch.float64)
+    u, v = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+    rays = np.stack([(u - size / 2) / focal, (v - size / 2) / focal, np.ones_like(u)], -1)  # camera z = 1
+    centre = w2c[:3, 3].numpy()  # the sphere's centre in camera coordinates
+    b = rays @ centre
+    a = np.einsum("hwi,hwi->hw", rays, rays)
+    disc = b**2 - a * (centre @ centre - 1.0)
+    depth = np.where(disc > 0, (b - np.sqrt(np.clip(disc, 0, None))) / a, 0.0)  # t with z = 1: the depth
+    return View(name=str(eye), K=K, world_to_camera=w2c, stokes=torch.zeros(3, 1, size, size),
+                mask=torch.from_numpy(depth[None] > 0), depth_gt=torch.from_numpy(depth[None]).float())
+
+
+def analytic_classes(points: np.ndarray, eyes: list[np.ndarray], grazing_deg: float, many: int) -> np.ndarray:
+    """Class codes of unit-sphere points in closed form: camera C sees p iff p . C > 1 (in front of
+    p's tangent plane; every camera images the whole sphere), at incidence cos = (p . C - 1) / |C - p|."""
+    well = np.zeros(len(points), int)
+    grazing = np.zeros(len(points), int)
+    for eye in eyes:
+        facing = points @ eye - 1.0
+        cosine = facing / np.linalg.norm(eye[None] - points, axis=1)
+        seen = facing > 0
+        steep = cosine >= math.cos(math.radians(grazing_deg))
+        well += seen & steep
+        grazing += seen & ~steep
+    return np.where(well >= many, 0, np.where(well > 0, 1, np.where(grazing > 0, 2, -1)))
+
+
+@pytest.mark.slow
+def test_completeness_by_visibility_class_of_a_sphere_with_a_missing_cap():
+    # GT: the unit sphere; prediction: the same sphere less a cap of angular radius 0.7 around an
+    # axis 70 deg above the horizon. Sixteen cameras 10 deg above the horizon see the sphere's top
+    # at grazing angles only, its middle latitudes from few views, its equator from many. A GT point
+    # at angle g < 0.7 from the axis is 2 sin((0.7 - g) / 2) from the prediction (the chord to the
+    # cap's rim), every other one lies on it.
+    elevation = math.radians(10)
+    eyes = [4.0 * np.array([math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a), math.sin(elevation)])
+            for a in np.radians(np.arange(0, 360, 360 / 16))]
+    views = [sphere_depth_view(eye) for eye in eyes]
+    gt = sphere(1.0)
+    axis = np.array([math.cos(math.radians(70)), 0.0, math.sin(math.radians(70))])
+    beta = 0.7
+    vertices, triangles = np.asarray(gt.vertices), np.asarray(gt.triangles)
+    centroid = vertices[triangles].mean(axis=1)
+    centroid /= np.linalg.norm(centroid, axis=1, keepdims=True)
+    pred = (vertices, triangles[np.arccos(np.clip(centroid @ axis, -1, 1)) >= beta])
+    cd = chamfer_distance(pred, gt, num_samples=N, max_dist=0.05, cull_views=views, region="object")
+    # the independent sampler: uniform points on the exact sphere, classes and distances in closed form
+    rng = np.random.default_rng(7)
+    points = rng.normal(size=(400_000, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    codes = analytic_classes(points, eyes, 70.0, 4)
+    angle = np.arccos(np.clip(points @ axis, -1, 1))
+    distance = np.where(angle < beta, 2 * np.sin((beta - angle) / 2), 0.0)
+    floor = nn_spacing(4 * math.pi, N)  # the prediction's sampling floor off the cap
+    seen = codes >= 0
+    # the depth maps see the surface at pixel resolution: the last sub-pixel sliver before a
+    # silhouette is where they and the closed form may differ
+    assert cd["visible_fraction"] == pytest.approx(seen.mean(), abs=0.02)
+    expected = {name: distance[codes == code].mean() for code, name in enumerate(("many", "few", "grazing"))}
+    assert expected["many"] < expected["few"] < expected["grazing"]  # the cap is lost mostly where seen worst
+    for code, name in enumerate(("many", "few", "grazing")):
+        assert cd["visibility_shares"][name] == pytest.approx((codes == code).sum() / seen.sum(), abs=0.02)
+        assert cd["completeness_by_visibility"][name] == pytest.approx(expected[name], abs=0.1 * expected[name] + floor)
+    assert cd["completeness_visible"] == pytest.approx(distance[seen].mean(), abs=0.1 * distance[seen].mean() + floor)
+    assert cd["chamfer_visible"] == pytest.approx((cd["accuracy_uncapped"] + cd["completeness_visible"]) / 2)
+    # the capped completeness drops the cap's far points (beyond 0.05) and misses most of the loss
+    assert cd["completeness"] < 0.5 * cd["completeness_visible"]
+
+
+def test_no_visibility_figures_without_depth_maps():
+    cd = chamfer_distance(sphere(1.0), sphere(1.0), num_samples=20_000, cull_views=[silhouette_view(np.array([3.0, 0, 1]))],
+                          region="object")
+    assert "chamfer_visible" not in cd and "completeness_by_visibility" not in cd

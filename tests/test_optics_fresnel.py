@@ -9,7 +9,9 @@ from polargs_plugin.optics import (
     dolp_diffuse,
     dolp_diffuse_max,
     dolp_specular,
+    dolp_specular_conductor,
     fresnel_reflectance,
+    fresnel_reflectance_conductor,
     zenith_from_dolp_diffuse,
 )
 
@@ -85,3 +87,40 @@ def test_float32_and_tensor_index_broadcast():
     expected = torch.stack([dolp_diffuse(theta[:, 0].double(), float(k)) for k in n], dim=1).float()
     torch.testing.assert_close(rho, expected)
     torch.testing.assert_close(zenith_from_dolp_diffuse(rho, n), theta.expand(2, 2), rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("n, k", [(0.43, 2.46), (1.02, 2.58), (0.96, 6.69), (2.9, 3.0)])
+def test_conductor_reflectance_at_normal_incidence_and_grazing(n, k):
+    # R(0) = ((n - 1)^2 + k^2) / ((n + 1)^2 + k^2) for both polarizations; R -> 1 at grazing
+    rs, rp = fresnel_reflectance_conductor(torch.tensor([0.0, math.pi / 2], dtype=torch.float64), n, k)
+    expected = ((n - 1) ** 2 + k**2) / ((n + 1) ** 2 + k**2)
+    torch.testing.assert_close(rs[0], torch.tensor(expected, dtype=torch.float64))
+    torch.testing.assert_close(rp[0], torch.tensor(expected, dtype=torch.float64))
+    torch.testing.assert_close(rs[1], torch.tensor(1.0, dtype=torch.float64))
+    torch.testing.assert_close(rp[1], torch.tensor(1.0, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("n, k", [(0.43, 2.46), (1.02, 2.58), (0.96, 6.69), (2.9, 3.0)])
+def test_conductor_reflectance_matches_the_explicit_complex_formulas(n, k):
+    # the reflection coefficients written with Python complex numbers, one angle at a time
+    index = complex(n, k)
+    for theta in THETA[::200].tolist():
+        cos_i, sin_i = math.cos(theta), math.sin(theta)
+        cos_t = (1 - sin_i**2 / index**2) ** 0.5
+        r_s = (cos_i - index * cos_t) / (cos_i + index * cos_t)
+        r_p = (index * cos_i - cos_t) / (index * cos_i + cos_t)
+        rs, rp = fresnel_reflectance_conductor(torch.tensor(theta, dtype=torch.float64), n, k)
+        assert float(rs) == pytest.approx(abs(r_s) ** 2, rel=1e-10)
+        assert float(rp) == pytest.approx(abs(r_p) ** 2, rel=1e-10)
+    # s is reflected more than p at every oblique angle: the DoLP is positive (AoLP = azimuth + pi/2)
+    rho = dolp_specular_conductor(THETA, n, k)
+    assert bool((rho > 0).all()) and float(rho.max()) < 1
+
+
+@pytest.mark.parametrize("n", [1.3, 1.5, 1.8])
+def test_conductor_formulas_without_extinction_are_the_dielectric_ones(n):
+    rs, rp = fresnel_reflectance_conductor(THETA, n, 0.0)
+    rs_ref, rp_ref = fresnel_reflectance(THETA, n)
+    torch.testing.assert_close(rs, rs_ref, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(rp, rp_ref, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(dolp_specular_conductor(THETA, n, 0.0), dolp_specular(THETA, n), rtol=0, atol=1e-9)

@@ -36,6 +36,23 @@ def test_generate_seed_controls_noise(tmp_path):
     assert np.array_equal(images[0], images[1]) and not np.array_equal(images[0], images[2])
 
 
+def test_generate_a_family_scene_with_its_visibility(tmp_path, capsys):
+    """--scene family --seed K: the seed's scene; its views and size override; the per-view
+    visibility of the object's triangles is written and reported."""
+    from polargs_plugin.data.family import family_settings
+    from polargs_plugin.data.scene_format import read_scene
+
+    out = tmp_path / "family"
+    assert main(["generate", "--scene", "family", "--seed", "16", "--out", str(out), "--views", "3", "--size", "36x36"]) == 0
+    scene = read_scene(out)
+    assert scene.name == "family-16" and len(scene.views) == 3 and scene.views[0].width == 36
+    assert scene.meta["family"]["layout"] == family_settings(16).layout
+    assert scene.meta["noise_std"] == family_settings(16).noise_std  # the seed's noise: --noise not given
+    assert scene.visibility is not None and scene.visibility.shape[0] == 3
+    printed = capsys.readouterr().out
+    assert "family-16" in printed and "visibility  of the seen surface: many" in printed
+
+
 def test_generate_small_option(tmp_path):
     assert main(["generate", "--scene", "glossy_plane_sphere", "--out", str(tmp_path / "s"), "--small"]) == 0
     views = read_scene_folder(tmp_path / "s")

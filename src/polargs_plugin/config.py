@@ -512,6 +512,10 @@ class FilterConfig(CheckedConfig):
             :meth:`PolarConfig.synthetic` sets ``"perspective"``.
         max_photometric_cost: the densifier keeps only pixels whose PatchMatch photometric cost
             (1 - NCC, in [0, 2]) is at most this; in [0, 2]. Default 0.9 (COLMAP's minimum NCC 0.1).
+        max_incidence_deg: a view supports a pixel only when it sees the pixel's surface (the
+            point and its normal) from its front at an incidence angle below this: a source
+            counts as consistent only then, and the reference view's own pixel is kept only then
+            (docs/patchmatch.md "Filters"); in (0, 90], or None: no such test. Default None.
     """
 
     max_reprojection_px: float = field(default=1.0, metadata=at_least(0))
@@ -522,6 +526,7 @@ class FilterConfig(CheckedConfig):
     polar_dolp_reference: float = field(default=0.1, metadata=above(0))
     azimuth_model: AzimuthModel = "orthographic"
     max_photometric_cost: float = field(default=0.9, metadata=within(0, 2))
+    max_incidence_deg: float | None = field(default=None, metadata=within(0, 90, low_open=True))
 
 
 @dataclass
@@ -537,6 +542,10 @@ class DensifyConfig(CheckedConfig):
         stride: seeds on every ``stride``-th pixel each way; >= 1. Default 2.
         max_new_per_call: at most this many new Gaussians a call (a random subset); >= 0.
             Default 5000.
+        budget_fraction: all calls together append at most this fraction of the number of
+            Gaussians the model had at the first Dense call (a random subset of a call's seeds
+            once the budget runs short; PatchMatch and L_n's targets go on); >= 0, or None: no
+            budget beyond ``max_new_per_call``. Default None.
         initial_opacity: the seeded Gaussians' opacity; in (0, 1). Default 0.5.
         alpha_threshold: rendered alpha below which a pixel is a hole (seeded); above it a source
             view's rendered depth serves the consistency filters; in [0, 1]. Default 0.5.
@@ -567,6 +576,7 @@ class DensifyConfig(CheckedConfig):
     interval: int = field(default=100, metadata=at_least(1))
     stride: int = field(default=2, metadata=at_least(1))
     max_new_per_call: int = field(default=5000, metadata=at_least(0))
+    budget_fraction: float | None = field(default=None, metadata=at_least(0))
     initial_opacity: float = field(default=0.5, metadata=within(0, 1, low_open=True, high_open=True))
     alpha_threshold: float = field(default=0.5, metadata=within(0, 1))
     seed_depth_footprints: float = field(default=0.88, metadata=at_least(0))

@@ -9,6 +9,10 @@ mean. As in the DTU script, distances above ``max_dist`` are dropped from the me
 clipped); the same means without the cap are reported as ``*_uncapped``.
 F-score at ``fscore_threshold`` uses all points. The signed distance of the predicted points to
 the GT surface (outside positive) tells a mesh that sits inside from one that sits outside.
+Where the views carry ground-truth depth maps, the GT points are also sorted by how the training
+views see them (:mod:`polargs_plugin.data.visibility`: seen by many views, by few, only at
+grazing angles): the uncapped completeness of each class and the uncapped Chamfer over the GT
+surface some view sees (``chamfer_visible``) show lost surface that the cap hides.
 Distances are in the meshes' own units; bring the prediction into the ground truth's frame and
 scale first.
 """
@@ -25,6 +29,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from polargs_plugin.data.visibility import (
+    CLASS_NAMES,
+    UNSEEN,
+    VisibilityClasses,
+    classify_counts,
+    depth_map_counts,
+)
 from polargs_plugin.nearest import SampleIndex
 from polargs_plugin.types import View
 
@@ -33,12 +44,14 @@ __all__ = [
     "FSCORE_FRACTION",
     "REGIONS",
     "sample_surface",
+    "sample_surface_with_faces",
     "cull_to_masks",
     "mesh_silhouettes",
     "in_object_region",
     "visible_from_views",
     "signed_distances",
     "chamfer_distance",
+    "visible_surface_figures",
     "normal_angle_errors",
     "normal_mae",
 ]
@@ -83,6 +96,11 @@ def sample_surface(mesh: MeshLike, num: int, seed: int = 0) -> np.ndarray:
     Returns:
         (num, 3) float64 points.
     """
+    return sample_surface_with_faces(mesh, num, seed)[0]
+
+
+def sample_surface_with_faces(mesh: MeshLike, num: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_surface`'s points (the same ones) and the triangle each lies on: ((num, 3), (num,))."""
     vertices, triangles = _mesh_arrays(mesh)
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
     areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
@@ -96,7 +114,15 @@ def sample_surface(mesh: MeshLike, num: int, seed: int = 0) -> np.ndarray:
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
     a, b, c = a[face], b[face], c[face]  # gathered once: the random gathers are the slow part
-    return a + r1[:, None] * (b - a) + r2[:, None] * (c - a)
+    return a + r1[:, None] * (b - a) + r2[:, None] * (c - a), face
+
+
+def _face_normals(mesh: MeshLike, faces: np.ndarray) -> np.ndarray:
+    """(N,) unit normals of the triangles ``faces`` of ``mesh`` (their own orientation)."""
+    vertices, triangles = _mesh_arrays(mesh)
+    corners = vertices[triangles[faces]]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
 
 
 def cull_to_masks(
@@ -309,6 +335,7 @@ def chamfer_distance(
     region: str | None = None,
     occluder: MeshLike | None = None,
     progress: Callable[[str], None] | None = None,
+    visibility_classes: VisibilityClasses | None = None,
 ) -> dict[str, float | int | str | bool]:
     """DTU-style Chamfer distance, F-score and signed distance between a predicted and a GT mesh.
 
@@ -331,6 +358,9 @@ def chamfer_distance(
         occluder: geometry that hides the GT object for region "object" (e.g. the whole scene with
             its floor); None = ``gt`` itself.
         progress: called with the name of each step before it starts (for progress bars).
+        visibility_classes: thresholds of the visibility classes (None: the defaults of
+            :class:`~polargs_plugin.data.visibility.VisibilityClasses`); used when every view of
+            ``cull_views`` has a ground-truth depth map.
 
     Returns:
         dict (distances in ``units``):
@@ -344,27 +374,42 @@ def chamfer_distance(
           to the GT surface (:func:`signed_distances`, outside positive), inside_fraction: the
           fraction of predicted points with a negative one;
         - max_dist, fscore_threshold, units, region, culled, num_pred_points and num_gt_points
-          (after the region restriction), pred_kept_fraction, gt_kept_fraction, seed.
+          (after the region restriction), pred_kept_fraction, gt_kept_fraction, seed;
+        - with depth maps on every view (:func:`visible_surface_figures`): visible_fraction (of the
+          GT samples, seen by some view in its depth map), completeness_visible (uncapped, over
+          those), chamfer_visible = (accuracy_uncapped + completeness_visible) / 2,
+          visibility_shares and completeness_by_visibility ({many, few, grazing}: each class's
+          share of the seen GT samples and its uncapped completeness, NaN for an empty class),
+          visibility_classes (the thresholds).
     """
     step = progress or (lambda name: None)
     region = _resolve_region(region, cull_views)
     max_dist, fscore_threshold = _distance_thresholds(gt, max_dist, fscore_threshold)
 
     step("sampling")
-    gt_points = sample_surface(gt, num_samples, seed)
+    gt_points, gt_faces = sample_surface_with_faces(gt, num_samples, seed)
     pred_points = sample_surface(pred, num_samples, seed + 1)
     num_gt_total, num_pred_total = len(gt_points), len(pred_points)
-    pred_points, gt_points = _restrict_to_region(
+    with_depth = bool(cull_views) and all(v.depth_gt is not None for v in cull_views)
+    all_gt_points = gt_points
+    pred_points, gt_kept = _restrict_to_region(
         pred_points, gt_points, region, gt, cull_views, cull_dilation_px, occluder, step
     )
+    gt_points = gt_points[gt_kept]
 
     step("nearest neighbours")
     to_gt = _nn_distances(pred_points, gt_points)
-    to_pred = _nn_distances(gt_points, pred_points)
+    to_pred_all = _nn_distances(all_gt_points, pred_points) if with_depth else None
+    to_pred = to_pred_all[gt_kept] if with_depth else _nn_distances(gt_points, pred_points)
     step("signed distance")
     signed = signed_distances(pred_points, gt)
+    figures = _distance_figures(to_gt, to_pred, signed, max_dist, fscore_threshold)
+    if with_depth:
+        step("visibility classes")
+        codes = _visibility_codes(all_gt_points, _face_normals(gt, gt_faces), cull_views, visibility_classes)
+        figures.update(visible_surface_figures(figures["accuracy_uncapped"], to_pred_all, codes, visibility_classes))
     return {
-        **_distance_figures(to_gt, to_pred, signed, max_dist, fscore_threshold),
+        **figures,
         "max_dist": max_dist,
         "fscore_threshold": fscore_threshold,
         "units": units,
@@ -409,8 +454,9 @@ def _restrict_to_region(
     occluder: MeshLike | None,
     step: Callable[[str], None],
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The predicted and GT samples of ``region`` (see :func:`chamfer_distance`); ValueError
-    when none is left."""
+    """(the predicted samples of ``region``, (N,) bool: which GT samples it keeps) (see
+    :func:`chamfer_distance`); ValueError when none is left."""
+    gt_kept = np.ones(len(gt_points), dtype=bool)
     if region == "masks":
         step("culling to the view masks")
         pred_points = pred_points[cull_to_masks(pred_points, cull_views, cull_dilation_px)]
@@ -418,12 +464,44 @@ def _restrict_to_region(
         step("culling to the object silhouettes")
         pred_points = pred_points[in_object_region(pred_points, gt, cull_views, cull_dilation_px, occluder)]
         step("GT visibility")
-        gt_points = gt_points[visible_from_views(gt_points, cull_views, gt if occluder is None else occluder)]
-        if len(gt_points) == 0:
+        gt_kept = visible_from_views(gt_points, cull_views, gt if occluder is None else occluder)
+        if not gt_kept.any():
             raise ValueError("chamfer_distance: no view sees the ground-truth mesh (cameras and mesh in different frames?)")
     if len(pred_points) == 0:
         raise ValueError("chamfer_distance: every predicted point lies outside the masks")
-    return pred_points, gt_points
+    return pred_points, gt_kept
+
+
+def _visibility_codes(points: np.ndarray, normals: np.ndarray, views: Sequence[View],
+                      classes: VisibilityClasses | None) -> np.ndarray:
+    """(N,) visibility class codes of GT samples from the views' GT depth maps."""
+    classes = classes or VisibilityClasses()
+    return classify_counts(*depth_map_counts(points, normals, views, classes), classes)
+
+
+def visible_surface_figures(
+    accuracy_uncapped: float, to_pred: np.ndarray, codes: np.ndarray, classes: VisibilityClasses | None = None
+) -> dict[str, object]:
+    """The visible-surface figures of :func:`chamfer_distance` from the uncapped accuracy, every GT
+    sample's distance to the prediction ``to_pred`` (N,) and its visibility class code (N,)
+    (:func:`polargs_plugin.data.visibility.classify_counts`)."""
+    classes = classes or VisibilityClasses()
+    seen = codes != UNSEEN
+    completeness = float(to_pred[seen].mean()) if seen.any() else math.nan
+
+    def class_mean(code: int) -> float:
+        members = codes == code
+        return float(to_pred[members].mean()) if members.any() else math.nan
+
+    return {
+        "visible_fraction": float(seen.mean()),
+        "completeness_visible": completeness,
+        "chamfer_visible": (accuracy_uncapped + completeness) / 2,
+        "visibility_shares": {name: float((codes == code).sum() / max(1, seen.sum())) for code, name in enumerate(CLASS_NAMES)},
+        "completeness_by_visibility": {name: class_mean(code) for code, name in enumerate(CLASS_NAMES)},
+        "visibility_classes": {"many_views": classes.many_views, "grazing_deg": classes.grazing_deg,
+                               "source": "ground-truth depth maps"},
+    }
 
 
 def _distance_figures(

@@ -51,7 +51,7 @@ from polargs_plugin.ablation.variants import DEFAULT_FACTOR, VARIANTS, describe,
 from polargs_plugin.io import PolarInputError, json_safe, write_json
 from polargs_plugin.service.runs import CHECKPOINT_NAME, MESH_NAME, METRICS_NAME, SUMMARY_NAME
 
-__all__ = ["Cell", "CellFailed", "run_cell", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done",
+__all__ = ["Cell", "CellFailed", "run_cell", "chamfer_figures", "VISIBILITY_CLASSES", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done",
            "partial_dir", "mark_interrupted", "PARTIAL_DIR"]
 
 RUN_FORMAT = "polargs-ablation-run-v1"
@@ -473,6 +473,25 @@ def _published(value: Any, tmp: Path, cell: Cell) -> Any:
     return value
 
 
+#: The visibility classes whose completeness and share a run's figures carry.
+VISIBILITY_CLASSES = ("many", "few", "grazing")
+
+
+def chamfer_figures(chamfer: dict[str, Any]) -> dict[str, Any]:
+    """The visible-surface figures of a metrics.json ``chamfer`` entry, flat: ``chamfer_visible``,
+    ``completeness_visible``, ``visible_fraction``, ``completeness_<class>`` and ``share_<class>``
+    for the classes many, few, grazing (None where the evaluation had no depth maps)."""
+    by_class = chamfer.get("completeness_by_visibility") or {}
+    shares = chamfer.get("visibility_shares") or {}
+    return {
+        "chamfer_visible": chamfer.get("chamfer_visible"),
+        "completeness_visible": chamfer.get("completeness_visible"),
+        "visible_fraction": chamfer.get("visible_fraction"),
+        **{f"completeness_{name}": by_class.get(name) for name in VISIBILITY_CLASSES},
+        **{f"share_{name}": shares.get(name) for name in VISIBILITY_CLASSES},
+    }
+
+
 def _figures(metrics: dict[str, Any], figures: dict[str, Any], curve: list[dict[str, float]]) -> dict[str, Any]:
     """The summary's ``figures``: the evaluation's and the training's."""
     chamfer = metrics.get("chamfer") or {}
@@ -488,6 +507,9 @@ def _figures(metrics: dict[str, Any], figures: dict[str, Any], curve: list[dict[
         "accuracy_outliers": chamfer.get("accuracy_outliers"),
         "completeness_outliers": chamfer.get("completeness_outliers"),
         "signed_distance_median": chamfer.get("signed_distance_median"),
+        # the uncapped Chamfer over the GT surface some view sees, and the completeness of the GT
+        # points seen by many views, by few and only at grazing angles (docs/evaluation.md)
+        **chamfer_figures(chamfer),
         "fscore": chamfer.get("fscore"),
         "precision": chamfer.get("precision"),
         "recall": chamfer.get("recall"),

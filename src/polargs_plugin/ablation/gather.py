@@ -4,6 +4,12 @@ results.md: one row per run, and per (scene, variant, init) the mean and spread 
 Spread = sample standard deviation over seeds (n - 1 in the denominator; shown as "–" for a
 single seed). "vs base" / "vs reg" are relative changes of the means against the same scene and
 init's base / reg rows (negative = better for Chamfer and normal MAE).
+
+Two Chamfer figures judge a variant: the DTU-style capped one and the uncapped one over the GT
+surface some training view sees (``chamfer_visible``, docs/evaluation.md). The **verdict** calls a
+variant better (or worse) than another on a scene only where both agree, and says where they
+disagree; the means over scenes, the completeness per visibility class and what Dense's appended
+Gaussians bought are tabled beside it.
 """
 
 from __future__ import annotations
@@ -16,13 +22,22 @@ import os
 from pathlib import Path
 from typing import Any
 
-from polargs_plugin.ablation.cell import RUN_FORMAT, SUMMARY_NAME
+from polargs_plugin.ablation.cell import RUN_FORMAT, SUMMARY_NAME, VISIBILITY_CLASSES, chamfer_figures
 from polargs_plugin.ablation.variants import VARIANTS
 from polargs_plugin.io import atomic_write
 
-__all__ = ["find_runs", "gather", "format_table", "METRICS", "RESULT_FILES"]
+__all__ = ["find_runs", "gather", "format_table", "format_results", "verdicts", "LEVEL", "scene_means", "dense_budget", "METRICS", "RESULT_FILES",
+           "VERDICT_PAIRS"]
 
 RESULT_FILES = ("results.csv", "results.json", "results.md")
+#: Figures compared with base and reg (``<key>_vs_base``, ``<key>_vs_reg``).
+COMPARED = ("chamfer", "chamfer_visible", "normal_mae_deg")
+#: Relative changes below this, in both Chamfer figures, are "level" in the verdict: a change of
+#: the float rounding alone moves a run's figures by about a percent (docs/results.md).
+LEVEL = 0.01
+#: (variant, reference) pairs the verdict judges, where both were run.
+VERDICT_PAIRS: tuple[tuple[str, str], ...] = (
+    ("full", "base"), ("full", "reg"), ("no-dense", "reg"), ("no-pc", "reg"), ("full", "no-dense"), ("full", "no-pc"))
 
 #: (key in summary["figures"], column title, format) of the aggregated metrics.
 METRICS: tuple[tuple[str, str, str], ...] = (
@@ -37,6 +52,12 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("accuracy_outliers", "accuracy outliers", ".3f"),
     ("completeness_outliers", "completeness outliers", ".3f"),
     ("signed_distance_median", "median signed distance", ".3g"),
+    # over the GT surface some training view sees, uncapped; completeness per visibility class
+    ("chamfer_visible", "visible Chamfer", ".4g"),
+    ("completeness_visible", "visible completeness", ".4g"),
+    ("visible_fraction", "GT share seen", ".3f"),
+    *((f"completeness_{name}", f"completeness, {name}", ".4g") for name in VISIBILITY_CLASSES),
+    *((f"share_{name}", f"share, {name}", ".3f") for name in VISIBILITY_CLASSES),
     ("fscore", "F-score", ".3f"),
     ("normal_mae_deg", "normal MAE (deg)", ".2f"),
     ("psnr", "PSNR (dB)", ".2f"),
@@ -76,7 +97,8 @@ def _figures(folder: Path, summary: dict[str, Any]) -> dict[str, Any]:
         chamfer = json.loads((folder / "metrics.json").read_text()).get("chamfer") or {}
     except (OSError, ValueError):
         return figures
-    return {**{key: chamfer.get(key) for key, _, _ in METRICS if key in chamfer}, **figures}
+    flat = {**chamfer, **chamfer_figures(chamfer)}
+    return {**{key: flat.get(key) for key, _, _ in METRICS if key in flat}, **figures}
 
 
 def _row(folder: Path) -> dict[str, Any]:
@@ -108,9 +130,11 @@ def _relative(value: float | None, reference: float | None) -> float | None:
 def gather(out: str | os.PathLike, write: bool = True) -> dict[str, Any]:
     """Read every run folder of ``out``; write results.csv / .json / .md (atomically) if ``write``.
 
-    Returns ``{"runs": [row, ...], "table": [group, ...], "markdown": str}``; a group has
-    scene, variant, init, seeds, ``<metric>: {mean, std, min, max, n}`` and the relative
-    changes ``chamfer_vs_base``, ``chamfer_vs_reg``, ``normal_mae_deg_vs_base``, ``normal_mae_deg_vs_reg``.
+    Returns ``{"runs": [row, ...], "table": [group, ...], "verdicts": [...], "scene_means": [...],
+    "dense_budget": [...], "markdown": str}``; a group has scene, variant, init, seeds,
+    ``<metric>: {mean, std, min, max, n}`` and the relative changes ``<key>_vs_base`` and
+    ``<key>_vs_reg`` for the keys of :data:`COMPARED`; :func:`verdicts`, :func:`scene_means`
+    and :func:`dense_budget` describe the other three.
     """
     out = Path(out)
     rows = [_row(folder) for folder in find_runs(out)]
@@ -132,10 +156,12 @@ def gather(out: str | os.PathLike, write: bool = True) -> dict[str, Any]:
     for e in table:
         for ref in ("base", "reg"):
             other = by_key.get((e["scene"], ref, e["init"]))
-            for key in ("chamfer", "normal_mae_deg"):
+            for key in COMPARED:
                 e[f"{key}_vs_{ref}"] = None if other is None or other is e else _relative(e[key]["mean"], other[key]["mean"])
-    markdown = format_table(table)
-    results = {"runs": rows, "table": table, "markdown": markdown}
+    results = {"runs": rows, "table": table, "verdicts": verdicts(table), "scene_means": scene_means(table),
+               "dense_budget": dense_budget(table)}
+    markdown = format_results(results)
+    results["markdown"] = markdown
     if write:
         out.mkdir(parents=True, exist_ok=True)
         buffer = io.StringIO()
@@ -146,7 +172,8 @@ def gather(out: str | os.PathLike, write: bool = True) -> dict[str, Any]:
         with atomic_write(out / "results.csv") as handle:
             handle.write(buffer.getvalue())
         with atomic_write(out / "results.json") as handle:
-            json.dump({"runs": rows, "table": table}, handle, indent=2)
+            json.dump({key: results[key] for key in ("runs", "table", "verdicts", "scene_means", "dense_budget")},
+                      handle, indent=2)
         with atomic_write(out / "results.md") as handle:
             handle.write(markdown + "\n")
     return results
@@ -159,31 +186,200 @@ def _cell(stats: dict[str, Any], fmt: str) -> str:
     return f"{format(stats['mean'], fmt)} ± {spread}"
 
 
-def _percent(value: float | None) -> str:
-    return "" if value is None else f"{100 * value:+.0f} %"
+def _percent(value: float | None, digits: int = 0) -> str:
+    return "" if value is None else f"{100 * value:+.{digits}f} %"
 
 
 def format_table(table: list[dict[str, Any]]) -> str:
     """The Markdown table: per scene, variant and init, mean ± spread over seeds."""
     if not table:
         return "(no finished runs)"
-    several_inits = len({e["init"] for e in table}) > 1 or any(e["init_used"] != [e["init"]] for e in table)
+    several_inits = _several_inits(table)
     head = ["scene", "variant"] + (["init"] if several_inits else []) + [
-        "seeds", "Chamfer", "vs base", "vs reg", "Chamfer uncapped", "completeness uncapped", "median signed distance",
-        "normal MAE (deg)", "vs base", "vs reg", "F-score", "PSNR (dB)", "Gaussians", "train (s)"]
+        "seeds", "Chamfer", "vs base", "vs reg", "visible Chamfer", "vs base", "vs reg", "Chamfer uncapped",
+        "completeness uncapped", "median signed distance", "normal MAE (deg)", "vs base", "vs reg", "F-score",
+        "PSNR (dB)", "Gaussians", "appended", "train (s)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for e in table:
-        init = e["init"] if e["init_used"] == [e["init"]] else f"{e['init']} (ran: {', '.join(e['init_used'])})"
-        cells = [e["scene"], e["variant"]] + ([init] if several_inits else []) + [
+        cells = [e["scene"], e["variant"]] + ([_init_label(e)] if several_inits else []) + [
             str(len(e["seeds"])),
             _cell(e["chamfer"], ".4g"), _percent(e["chamfer_vs_base"]), _percent(e["chamfer_vs_reg"]),
+            _cell(e["chamfer_visible"], ".4g"), _percent(e["chamfer_visible_vs_base"]), _percent(e["chamfer_visible_vs_reg"]),
             _cell(e["chamfer_uncapped"], ".4g"), _cell(e["completeness_uncapped"], ".4g"),
             _cell(e["signed_distance_median"], ".3g"),
             _cell(e["normal_mae_deg"], ".2f"), _percent(e["normal_mae_deg_vs_base"]), _percent(e["normal_mae_deg_vs_reg"]),
-            _cell(e["fscore"], ".3f"), _cell(e["psnr"], ".2f"), _cell(e["num_gaussians"], ".0f"), _cell(e["train_seconds"], ".0f"),
+            _cell(e["fscore"], ".3f"), _cell(e["psnr"], ".2f"), _cell(e["num_gaussians"], ".0f"),
+            _cell(e["appended_total"], ".0f"), _cell(e["train_seconds"], ".0f"),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _several_inits(table: list[dict[str, Any]]) -> bool:
+    return len({e["init"] for e in table}) > 1 or any(e["init_used"] != [e["init"]] for e in table)
+
+
+def _init_label(e: dict[str, Any]) -> str:
+    return e["init"] if e["init_used"] == [e["init"]] else f"{e['init']} (ran: {', '.join(e['init_used'])})"
+
+
+def _mean(e: dict[str, Any] | None, key: str) -> float | None:
+    return None if e is None else e[key]["mean"]
+
+
+def verdicts(table: list[dict[str, Any]], pairs: tuple[tuple[str, str], ...] = VERDICT_PAIRS) -> list[dict[str, Any]]:
+    """Per scene, init and pair (variant, reference) of :data:`VERDICT_PAIRS` that both ran: the
+    relative change of the capped Chamfer (``capped``), of the visible-surface Chamfer
+    (``visible``) and of the normal MAE (``normals``), and the ``verdict``: ``level`` where both
+    Chamfer figures moved by less than :data:`LEVEL`, else ``better`` / ``worse`` where both moved
+    the same way, ``disagree`` where they did not (``capped only`` without the visible figure)."""
+    by_key = {(e["scene"], e["variant"], e["init"]): e for e in table}
+    out = []
+    for scene, init in dict.fromkeys((e["scene"], e["init"]) for e in table):
+        for variant, reference in pairs:
+            this, other = by_key.get((scene, variant, init)), by_key.get((scene, reference, init))
+            if this is None or other is None:
+                continue
+            capped = _relative(_mean(this, "chamfer"), _mean(other, "chamfer"))
+            visible = _relative(_mean(this, "chamfer_visible"), _mean(other, "chamfer_visible"))
+            normals = _relative(_mean(this, "normal_mae_deg"), _mean(other, "normal_mae_deg"))
+            if capped is None or visible is None:
+                verdict = "capped only"
+            elif abs(capped) < LEVEL and abs(visible) < LEVEL:
+                verdict = "level"
+            elif capped < 0 and visible < 0:
+                verdict = "better"
+            elif capped > 0 and visible > 0:
+                verdict = "worse"
+            else:
+                verdict = "disagree"
+            out.append({"scene": scene, "init": init, "variant": variant, "reference": reference, "capped": capped,
+                        "visible": visible, "normals": normals, "verdict": verdict})
+    return out
+
+
+def scene_means(table: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per variant and init, the means over the scenes where every variant of the table ran: capped
+    and visible Chamfer, normal MAE, Gaussians appended; the relative changes of those means
+    against base and reg; and the worst scene's relative change of the visible Chamfer against reg."""
+    variants = list(dict.fromkeys(e["variant"] for e in table))
+    by_key = {(e["scene"], e["variant"], e["init"]): e for e in table}
+    out = []
+    for init in dict.fromkeys(e["init"] for e in table):
+        scenes = [s for s in dict.fromkeys(e["scene"] for e in table) if all((s, v, init) in by_key for v in variants)]
+        if not scenes:
+            continue
+        means: dict[str, dict[str, Any]] = {}
+        for variant in variants:
+            entries = [by_key[(s, variant, init)] for s in scenes]
+            row: dict[str, Any] = {"variant": variant, "init": init, "scenes": scenes}
+            for key in ("chamfer", "chamfer_visible", "normal_mae_deg", "appended_total"):
+                values = [_mean(e, key) for e in entries]
+                row[key] = sum(values) / len(values) if all(v is not None for v in values) else None
+            reg = [by_key.get((s, "reg", init)) for s in scenes]
+            worst = [_relative(_mean(e, "chamfer_visible"), _mean(r, "chamfer_visible")) for e, r in zip(entries, reg)]
+            row["worst_visible_vs_reg"] = max(worst) if worst and all(w is not None for w in worst) and variant != "reg" else None
+            means[variant] = row
+        for row in means.values():
+            for ref in ("base", "reg"):
+                other = means.get(ref)
+                for key in COMPARED:
+                    row[f"{key}_vs_{ref}"] = None if other is None or other is row else _relative(row[key], other[key])
+            out.append(row)
+    return out
+
+
+def dense_budget(table: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """What Dense's appended Gaussians bought, per scene and init: for no-pc against reg and for full
+    against no-dense (the same variant without Dense), the Gaussians appended (mean over seeds), the
+    relative change of the visible Chamfer, and that change per thousand appended Gaussians."""
+    by_key = {(e["scene"], e["variant"], e["init"]): e for e in table}
+    out = []
+    for (scene, variant, init), e in by_key.items():
+        reference = {"no-pc": "reg", "full": "no-dense"}.get(variant)
+        other = by_key.get((scene, reference, init))
+        if other is None:
+            continue
+        appended = _mean(e, "appended_total")
+        change = _relative(_mean(e, "chamfer_visible"), _mean(other, "chamfer_visible"))
+        per_thousand = None if change is None or not appended else change / (appended / 1000)
+        out.append({"scene": scene, "init": init, "variant": variant, "reference": reference, "appended": appended,
+                    "visible_change": change, "change_per_thousand": per_thousand})
+    return out
+
+
+def _verdict_table(rows: list[dict[str, Any]]) -> str:
+    head = ["scene", "variant", "against", "Chamfer", "visible Chamfer", "normal MAE", "verdict"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for r in rows:
+        verdict = {"better": "better", "worse": "worse", "level": "level (both within 1 %)",
+                   "disagree": "**the Chamfer figures disagree**",
+                   "capped only": "capped Chamfer only (no depth maps)"}[r["verdict"]]
+        lines.append(f"| {r['scene']} | {r['variant']} | {r['reference']} | {_percent(r['capped'], 1)} | "
+                     f"{_percent(r['visible'], 1)} | {_percent(r['normals'], 1)} | {verdict} |")
+    return "\n".join(lines)
+
+
+def _means_table(rows: list[dict[str, Any]]) -> str:
+    head = ["variant", "scenes", "Chamfer", "visible Chamfer", "vs base", "vs reg", "worst scene vs reg",
+            "normal MAE (deg)", "vs base", "vs reg", "appended"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for r in rows:
+        lines.append("| " + " | ".join([
+            r["variant"], str(len(r["scenes"])), _number(r["chamfer"], ".4g"), _number(r["chamfer_visible"], ".4g"),
+            _percent(r["chamfer_visible_vs_base"], 1), _percent(r["chamfer_visible_vs_reg"], 1),
+            _percent(r["worst_visible_vs_reg"], 1), _number(r["normal_mae_deg"], ".2f"),
+            _percent(r["normal_mae_deg_vs_base"], 1), _percent(r["normal_mae_deg_vs_reg"], 1),
+            _number(r["appended_total"], ".0f")]) + " |")
+    return "\n".join(lines)
+
+
+def _classes_table(table: list[dict[str, Any]]) -> str:
+    head = ["scene", "variant", "GT share seen"] + [f"{name} (share)" for name in VISIBILITY_CLASSES]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for e in table:
+        cells = [e["scene"], e["variant"], _number(_mean(e, "visible_fraction"), ".3f")]
+        cells += [f"{_number(_mean(e, f'completeness_{n}'), '.4g')} ({_number(_mean(e, f'share_{n}'), '.2f')})"
+                  for n in VISIBILITY_CLASSES]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _budget_table(rows: list[dict[str, Any]]) -> str:
+    head = ["scene", "variant", "against", "appended", "visible Chamfer", "per 1000 appended"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['variant']} | {r['reference']} | {_number(r['appended'], '.0f')} | "
+                     f"{_percent(r['visible_change'], 1)} | {_percent(r['change_per_thousand'], 2)} |")
+    return "\n".join(lines)
+
+
+def format_results(results: dict[str, Any]) -> str:
+    """results.md: the table (:func:`format_table`), then the verdict, the means over scenes, the
+    completeness per visibility class and Dense's appends, where there is something to show."""
+    table = results["table"]
+    parts = [format_table(table)]
+    if results.get("verdicts"):
+        parts += ["### Verdict", "A variant is better (worse) than another on a scene only where the capped Chamfer "
+                  "and the visible-surface Chamfer both fall (rise), level where both move by less than 1 %; where "
+                  "they move apart the table says so. Relative changes of the means over seeds.",
+                  _verdict_table(results["verdicts"])]
+    if len(results.get("scene_means") or []) > 1 and len(results["scene_means"][0]["scenes"]) > 1:
+        parts += ["### Means over the scenes", "Relative changes of the means over scenes; \"worst scene vs reg\": the "
+                  "largest relative change of the visible Chamfer against reg on a single scene.",
+                  _means_table(results["scene_means"])]
+    if any(_mean(e, "visible_fraction") is not None for e in table):
+        parts += ["### Completeness by visibility class", "Uncapped completeness of the GT points seen by >= 4 views at "
+                  "incidence < 70 deg (many), by 1-3 (few), only at grazing angles (grazing); in brackets the class's "
+                  "share of the seen GT surface.", _classes_table(table)]
+    if results.get("dense_budget"):
+        parts += ["### What Dense's appended Gaussians bought", "Visible-surface Chamfer against the same variant "
+                  "without Dense, and that change per thousand Gaussians appended.", _budget_table(results["dense_budget"])]
+    return "\n\n".join(parts)
+
+
+def _number(value: float | None, fmt: str) -> str:
+    return "n/a" if value is None else format(value, fmt)
 
 
 if __name__ == "__main__":  # python -m polargs_plugin.ablation.gather OUT

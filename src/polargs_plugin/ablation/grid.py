@@ -51,8 +51,10 @@ class GridOptions:
     Attributes:
         out: the grid folder.
         scene_cache: where bundled scenes are generated (None: ``out/scenes``).
-        views: views of a generated bundled scene (default 24).
-        size: (width, height) of a generated bundled scene (default 128x128).
+        views: views of a generated scene (None: its own, 24 for a bundled scene, the seed's for a
+            family scene).
+        size: (width, height) of a generated scene (None: its own, 128x128 for a bundled scene,
+            the seed's for a family scene).
         inits: initial points, each a separate cell: ``hull``, ``sfm``, ``random``.
         preset: ``cpu`` (the vanilla schedule x ``factor``) or ``paper``.
         factor: the cpu preset's schedule factor (None: 1/6, 5000 iterations).
@@ -70,8 +72,8 @@ class GridOptions:
 
     out: Path
     scene_cache: Path | None = None
-    views: int = 24
-    size: tuple[int, int] = (128, 128)
+    views: int | None = None
+    size: tuple[int, int] | None = None
     inits: tuple[str, ...] = ("hull",)
     preset: str = "cpu"
     factor: float | None = None
@@ -94,7 +96,7 @@ _READER_FLAGS = {"pattern": "--pattern", "bit_depth": "--bit-depth", "sfm": "--s
 
 def _scenes(options: GridOptions, scene_texts: Sequence[str], warn: Callable[[str], None]) -> list[SceneSpec]:
     cache = options.scene_cache or Path(options.out) / "scenes"
-    width, height = options.size
+    width, height = options.size or (None, None)
     scenes = []
     for text in scene_texts:
         try:

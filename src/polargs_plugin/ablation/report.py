@@ -3,8 +3,8 @@
 Reads the run folders only (summary.json, curves.csv, views.npz, mesh_error.npz, pc_maps.npz)
 through :func:`polargs_plugin.ablation.gather.gather`. Per scene (and init):
 
-- ``metrics_*.png``: Chamfer and normal MAE per variant, bar = mean over seeds, error bar = sample
-  standard deviation, dots = the seeds;
+- ``metrics_*.png``: Chamfer (capped and, where the views have depth maps, visible-surface) and
+  normal MAE per variant, bar = mean over seeds, error bar = sample standard deviation, dots = the seeds;
 - ``views_*.png``: two views side by side; rows GT then one per variant; per view rendered colour,
   normal map, depth error against GT depth;
 - ``mesh_error_*.png``: the predicted mesh's vertices projected into the first view, coloured by
@@ -104,10 +104,13 @@ def _off(ax) -> None:
 
 
 def _metrics_figure(entries: list[dict], runs: list[dict], path: Path, units: str) -> Path:
-    fig = _figure(4 + 1.1 * len(entries), 3.4)
-    axes = fig.subplots(1, 2)
+    panels = [("chamfer", f"Chamfer ({units})"), ("normal_mae_deg", "normal MAE (deg)")]
+    if any(e["chamfer_visible"]["mean"] is not None for e in entries):
+        panels.insert(1, ("chamfer_visible", f"visible-surface Chamfer ({units})"))
+    fig = _figure(2 + (1 + 0.55 * len(entries)) * len(panels), 3.4)
+    axes = fig.subplots(1, len(panels))
     labels = [e["variant"] if len({x["init"] for x in entries}) == 1 else f"{e['variant']}\n{e['init']}" for e in entries]
-    for ax, key, title in ((axes[0], "chamfer", f"Chamfer ({units})"), (axes[1], "normal_mae_deg", "normal MAE (deg)")):
+    for ax, (key, title) in zip(axes, panels):
         x = np.arange(len(entries))
         means = [np.nan if e[key]["mean"] is None else e[key]["mean"] for e in entries]
         errs = [0.0 if e[key]["std"] is None else e[key]["std"] for e in entries]
@@ -312,6 +315,19 @@ def _curves_figure(members: list[tuple[str, int, Path]], path: Path) -> Path | N
 
 
 # ------------------------------------------------------------------------------------ report
+def _scene_verdict(rows: list[dict[str, Any]], scene: str, init: str) -> list[str]:
+    """One line per judged pair of the scene: the verdict with both Chamfer figures."""
+    lines = []
+    for r in (r for r in rows if r["scene"] == scene and r["init"] == init):
+        figures = ", ".join(f"{name} {100 * r[key]:+.1f} %" for key, name in (("capped", "Chamfer"),
+                            ("visible", "visible Chamfer")) if r[key] is not None)
+        word = {"better": "better than", "worse": "worse than", "level": "level (within 1 %) with",
+                "disagree": "neither better nor worse than (the Chamfer figures disagree)",
+                "capped only": "judged on the capped Chamfer only against"}[r["verdict"]]
+        lines.append(f"- `{r['variant']}` is {word} `{r['reference']}`: {figures}")
+    return (["Verdict (better or worse only where both Chamfer figures agree):", ""] + lines + [""]) if lines else []
+
+
 def write_report(out: str | os.PathLike, results: dict[str, Any] | None = None, command: str | None = None) -> Path:
     """Write ``<out>/report.md`` and ``<out>/figures/*.png``; returns the report's path.
 
@@ -336,6 +352,7 @@ def write_report(out: str | os.PathLike, results: dict[str, Any] | None = None, 
     lines += [f"Chamfer (accuracy + completeness) / 2 against the GT mesh in {units}, restricted to the observed "
               "object, distances above 5 % of the GT box diagonal dropped (`polargs eval`, docs/evaluation.md); "
               "\"uncapped\": the same means over every point (a missing or sunken part of the mesh shows there); "
+              "\"visible Chamfer\": uncapped, over the GT surface that some training view sees in its GT depth map; "
               "median signed distance of the predicted points to the GT surface (negative = inside); "
               "normal MAE = mean angle between rendered and GT normals inside the GT masks "
               "of every training view. Mean ± sample standard deviation over seeds; \"vs base\" / \"vs reg\": "
@@ -365,6 +382,7 @@ def write_report(out: str | os.PathLike, results: dict[str, Any] | None = None, 
                           f"dataset `{summary.get('dataset')}`.", ""]
             made = _metrics_figure(entries, members, figures / f"metrics_{tag}.png", units)
             lines += ["### Chamfer and normal MAE", "", f"![Chamfer and normal MAE per variant]({made.relative_to(out)})", ""]
+            lines += _scene_verdict(results.get("verdicts") or [], scene, init)
             made = _views_figure(reps, figures / f"views_{tag}.png")
             if made:
                 lines += ["### Two views per variant", "",

@@ -33,9 +33,10 @@ Variants:
 """ + "\n".join(f"  {name:9s} {text}" for name, text in DESCRIPTIONS.items()) + """
 
 Scenes (comma-separated): a bundled name (glossy_plane_sphere, shiny_torus, bumpy_mixed,
-torus_knot; generated once into --scene-cache with --views/--size), or a dataset folder in any
-supported format as NAME=PATH:GT_MESH, NAME=PATH or PATH (GT mesh: gt_mesh.ply or mesh.ply in
-the folder).
+torus_knot; generated once into --scene-cache with --views/--size), family:K (the procedural
+family's scene of seed K, with its own views and size; seeds below 10000 are for development,
+from 10000 on for testing, docs/scene-family.md), or a dataset folder in any supported format as
+NAME=PATH:GT_MESH, NAME=PATH or PATH (GT mesh: gt_mesh.ply or mesh.ply in the folder).
 
 Resumable: run folders are complete or absent; finished runs are skipped when the command runs
 again, and an interrupted run resumes from its last periodic checkpoint. A failed run leaves
@@ -49,6 +50,7 @@ skips done and running cells, --retry-failed resubmits only the failed ones. See
 Examples:
   polargs ablate --scenes glossy_plane_sphere,shiny_torus --variants all --seeds 0,1 --out runs/ablation
   polargs ablate --scenes gps=data/gps:data/gps/gt.ply --variants base,reg,full --out runs/gps --jobs 2
+  polargs ablate --scenes family:3,family:17 --variants reg,full --out runs/family-dev
   polargs ablate --scenes shiny_torus --variants all --seeds 0,1,2 --preset paper --out runs/paper \\
                  --executor submitit --slurm-partition gpu --gpus-per-task 1 --cpus-per-task 8 --timeout-min 120
   polargs ablate --status runs/paper                        # done / running / failed / missing, with logs
@@ -78,8 +80,10 @@ def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "1/6:
     p.add_argument("--init", default="hull", metavar="INIT",
                    help="initial points: hull (visual hull of the masks), sfm (triangulated SIFT matches with the known poses; "
                    "falls back to hull when too few, recorded), random (uniform in the look-at cube); comma-separated to run several (default hull)")
-    p.add_argument("--views", type=positive_int, default=24, metavar="N", help="views of a generated bundled scene (default 24)")
-    p.add_argument("--size", type=image_size, default=(128, 128), metavar="WxH", help="image size of a generated bundled scene (default 128x128)")
+    p.add_argument("--views", type=positive_int, default=None, metavar="N",
+                   help="views of a generated scene (default: 24 for a bundled scene, the seed's for family:K)")
+    p.add_argument("--size", type=image_size, default=None, metavar="WxH",
+                   help="image size of a generated scene (default: 128x128 for a bundled scene, the seed's for family:K)")
     p.add_argument("--scene-cache", type=Path, default=None, metavar="DIR", help="where bundled scenes are generated and reused (default OUT/scenes)")
     p.add_argument("--train-set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a TrainConfig field, dotted for nested ones (e.g. density.max_gaussians=3000); repeatable")
@@ -181,7 +185,7 @@ def grid_options(args: argparse.Namespace) -> "GridOptions":
     from polargs_plugin.ablation.grid import GridOptions
 
     return GridOptions(
-        out=args.out, scene_cache=args.scene_cache, views=args.views, size=tuple(args.size),
+        out=args.out, scene_cache=args.scene_cache, views=args.views, size=None if args.size is None else tuple(args.size),
         inits=tuple(_split(args.init, "--init")), preset=args.preset, factor=args.factor, iters=args.iters,
         train_overrides=parse_assignments(args.train_set, "--train-set"),
         polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
@@ -355,9 +359,9 @@ def _key_values(items: list[str], option: str) -> dict[str, str]:
 def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
     """The canonical command that reproduces this invocation (for the report)."""
     parts = ["polargs", name, *extra, "--out", str(args.out)]
-    width, height = args.size
+    size = None if args.size is None else "x".join(map(str, args.size))
     for flag, value, default in (("--preset", args.preset, "cpu"), ("--factor", args.factor, None), ("--iters", args.iters, None),
-                                 ("--init", args.init, "hull"), ("--views", args.views, 24), ("--size", f"{width}x{height}", "128x128"),
+                                 ("--init", args.init, "hull"), ("--views", args.views, None), ("--size", size, None),
                                  ("--mesh-preset", args.mesh_preset, "synthetic"), ("--voxel", args.voxel, None),
                                  ("--eval-samples", args.eval_samples, 1_000_000), ("--threads-per-run", args.threads_per_run, 1)):
         if value != default:

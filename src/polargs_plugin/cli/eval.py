@@ -24,7 +24,10 @@ sees are left out, and the normal MAE counts only the pixels where the GT object
 completeness = GT -> predicted, chamfer = their mean; distances above --max-dist are dropped (DTU) and
 the uncapped means are reported next to them; defaults are 5 % (outlier cap) and 0.5 % (F-score) of
 the GT bounding-box diagonal. The signed distance (outside positive) tells whether the mesh sits
-inside or outside the true surface. Results are printed and written to metrics.json.
+inside or outside the true surface. Where the views carry ground-truth depth maps (the generated
+scenes do), the uncapped Chamfer over the GT surface some view sees and the completeness of the GT
+points seen by many views (>= 4 at an incidence below 70 deg), by few, or only at grazing angles are
+reported too. Results are printed and written to metrics.json.
 """
 
 
@@ -80,6 +83,12 @@ def format_table(metrics: dict[str, Any]) -> str:
         if "signed_distance_median" in cd:
             rows.append(("signed distance (outside +)", f"median {cd['signed_distance_median']:+.4g} {unit}, "
                          f"mean {cd['signed_distance_mean']:+.4g}, {100 * cd['inside_fraction']:.1f} % inside"))
+        if "chamfer_visible" in cd:
+            rows.append(("visible surface", f"Chamfer {cd['chamfer_visible']:.5g} {unit} uncapped, completeness "
+                         f"{cd['completeness_visible']:.5g} over the {100 * cd['visible_fraction']:.1f} % of GT some view sees"))
+            rows.append(("completeness by view", ", ".join(
+                f"{name} {cd['completeness_by_visibility'][name]:.4g} ({100 * share:.0f} %)"
+                for name, share in cd["visibility_shares"].items())))
         rows.append(("samples (pred / GT)", f"{cd['num_pred_points']} / {cd['num_gt_points']}"))
     if metrics.get("normal_mae_deg") is not None:
         region = metrics.get("normal_region", "masks")

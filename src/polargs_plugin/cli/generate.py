@@ -5,13 +5,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polargs_plugin.cli.argtypes import image_size, positive_int
+from polargs_plugin.cli.argtypes import image_size, non_negative_int, positive_int
 
 _EPILOG = """examples:
   polargs generate --scene glossy_plane_sphere --out scenes/sphere
   polargs generate --scene bumpy_mixed --out scenes/bumpy --views 36 --size 160x120 --pictures
   polargs generate --scene shiny_torus --out out/torus --small      # 8 views of 48x48, for tests
   polargs generate --scene bumpy_mixed --out raw36 --views 36 --size 2448x2048 --mosaic rgb --bits 16 --no-cameras
+  polargs generate --scene family --seed 17 --out scenes/family-17  # a scene of the procedural family
+
+--scene family renders the family's scene of --seed (shape, materials, lights, exposure, noise,
+cameras, views and size all drawn from the seed; --views, --size and --noise override theirs).
+Seeds below 10000 are for development, seeds from 10000 on are test seeds (docs/scene-family.md).
 
 The folder holds four RGB angle images per view (0/45/90/135 deg), cameras.json (K and
 world_to_camera, OpenCV frame), masks, ground-truth normals/depth/diffuse/specular, highlight and
@@ -28,6 +33,7 @@ so --out holds a whole scene or nothing.
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``generate`` subcommand."""
+    from polargs_plugin.data.family import FAMILY
     from polargs_plugin.data.synthetic import MASK_KINDS, SCENE_NAMES
     from polargs_plugin.service.scenes import EXPORTS
 
@@ -40,16 +46,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--scene", required=True, choices=SCENE_NAMES, help="which procedural scene")
+    parser.add_argument("--scene", required=True, choices=(*SCENE_NAMES, FAMILY),
+                        help="which procedural scene; family: the procedural family's scene of --seed")
     parser.add_argument("--out", required=True, type=Path, help="output folder (created; must be absent or empty)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing scene folder --out (as a whole)")
-    parser.add_argument("--views", type=positive_int, default=24, help="number of cameras (default 24)")
-    parser.add_argument("--size", type=image_size, default=(128, 128), metavar="WxH", help="image size (default 128x128)")
+    parser.add_argument("--views", type=positive_int, default=None, help="number of cameras (default 24; family: the seed's)")
+    parser.add_argument("--size", type=image_size, default=None, metavar="WxH",
+                        help="image size (default 128x128; family: the seed's)")
     parser.add_argument("--small", action="store_true", help="test-sized scene: 8 views of 48x48 (overrides --views/--size)")
-    parser.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default 0)")
-    parser.add_argument("--noise", type=float, default=0.005, help="Gaussian noise std per angle image (default 0.005)")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
+                        help="sensor-noise seed (default 0); for --scene family also the scene's seed")
+    parser.add_argument("--noise", type=float, default=None,
+                        help="Gaussian noise std per angle image (default 0.005; family: the seed's)")
     parser.add_argument("--bits", type=int, choices=(8, 16), default=8, help="sensor bit depth (default 8)")
-    parser.add_argument("--ior", type=float, default=1.5, help="refractive index for the Fresnel DoLP (default 1.5)")
+    parser.add_argument("--ior", type=float, default=1.5,
+                        help="refractive index for the Fresnel DoLP (default 1.5; a family scene's materials have their own)")
     parser.add_argument("--mask", choices=MASK_KINDS, default="object",
                         help="what the masks mark: object = the object's own pixels, a floor it stands on is "
                         "background (default); surface = every surface seen, the floor included")
@@ -74,20 +85,24 @@ def run(args: argparse.Namespace) -> int:
 
     if args.small:
         args.views, args.size = SMALL_SETTINGS["num_views"], (SMALL_SETTINGS["width"], SMALL_SETTINGS["height"])
-    width, height = args.size
+    width, height = args.size or (None, None)
     if args.no_cameras and args.mosaic is None:
         raise PolarInputError("--no-cameras", "only with --mosaic (a scene folder always holds its cameras)")
     request = SceneRequest(args.scene, views=args.views, width=width, height=height, seed=args.seed,
                            noise_std=args.noise, bits=args.bits, refractive_index=args.ior, mask=args.mask,
                            pictures=args.pictures, mosaic=args.mosaic, cameras=not args.no_cameras)
     made = generate_scene_folder(request, args.out, overwrite=args.overwrite, progress=True, export=args.export)
-    stats = made.statistics
-    print(f"scene       {made.name}: {made.meta['description']}")
-    print(f"views       {made.num_views} x {width}x{height}, {args.bits}-bit, noise {args.noise}, seed {args.seed}"
+    stats, meta = made.statistics, made.meta
+    print(f"scene       {made.name}: {meta['description']}")
+    print(f"views       {made.num_views} x {meta['width']}x{meta['height']}, {args.bits}-bit, "
+          f"noise {meta['noise_std']:.4g}, seed {args.seed}"
           + (f"; {args.mosaic} raw mosaics" + ("" if request.cameras else ", no cameras (for --sfm)") if args.mosaic else ""))
     print(f"object      {stats['object_fraction']:.1%} of pixels; mesh {stats['mesh_vertices']} vertices")
     print(f"highlights  {stats['highlight_fraction']:.1%} of object pixels, overexposed {stats['overexposed_fraction']:.1%}")
-    print(f"DoLP        median {stats['dolp_median']:.3f} on the object (AoLP model: {made.meta['azimuth_model']})")
+    print(f"DoLP        median {stats['dolp_median']:.3f} on the object (AoLP model: {meta['azimuth_model']})")
+    if "visibility" in stats:
+        shares = ", ".join(f"{name} {share:.1%}" for name, share in stats["visibility"].items())
+        print(f"visibility  of the seen surface: {shares}; unseen {stats['unseen_fraction']:.1%}")
     print(f"time        {made.render_seconds:.1f} s rendering, {made.write_seconds:.1f} s writing")
     print(f"written     {args.out}" + (f" (+{made.pictures} pictures)" if made.pictures else ""))
     if args.export:

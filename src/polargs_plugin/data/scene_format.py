@@ -15,6 +15,7 @@ Layout (docs/dataset-format.md has the full description)::
       overexposed/<view>.png        8-bit overexposure mask
       mesh.ply                      GT mesh of the whole scene (object + floor), world frame
       gt_mesh.ply                   evaluation GT: the object only (docs/evaluation.md)
+      visibility.npz                which view sees which triangle of gt_mesh.ply (bit-packed)
 
 Every file is written atomically and ``cameras.json`` is written last, so a folder that has it
 is complete. Readers validate everything and raise :class:`~polargs_plugin.io.PolarInputError`
@@ -55,6 +56,8 @@ __all__ = [
     "is_scene_folder",
     "MESH_FILE",
     "GT_MESH_FILE",
+    "VISIBILITY_FILE",
+    "read_visibility",
 ]
 
 FORMAT_NAME = "polargs-scene"
@@ -63,6 +66,7 @@ CAMERAS_FILE = "cameras.json"
 META_FILE = "scene.json"
 MESH_FILE = "mesh.ply"
 GT_MESH_FILE = "gt_mesh.ply"
+VISIBILITY_FILE = "visibility.npz"
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 _ROTATION_TOL = 1e-5
 
@@ -130,6 +134,7 @@ class SceneWriter:
         self.folder, self.bits = Path(folder), bits
         self.size: tuple[int, int] | None = None  # (H, W) of the first view
         self.cameras: list[dict] = []
+        self.visibility: list[np.ndarray] = []  # per part, (views, F) rows of the object's triangles
 
     def add(self, scene: SyntheticScene) -> None:
         """Write the files of every view of ``scene`` (all views share one size)."""
@@ -159,6 +164,8 @@ class SceneWriter:
                     "world_to_camera": view.world_to_camera.to(torch.float64).tolist(),
                 }
             )
+        if scene.visibility is not None:
+            self.visibility.append(np.asarray(scene.visibility, dtype=bool))
 
     def finish(self, scene: SyntheticScene) -> Path:
         """Write the meshes and the meta of ``scene``, then ``cameras.json`` (last: a folder that
@@ -166,6 +173,8 @@ class SceneWriter:
         if self.size is None:
             raise ValueError("the scene has no views")
         write_meshes(scene, self.folder)
+        if self.visibility:
+            _write_visibility(self.folder / VISIBILITY_FILE, np.concatenate(self.visibility))
         with atomic_write(self.folder / META_FILE) as handle:
             meta = {"name": scene.name, **scene.meta}
             if scene.object_triangles is not None:
@@ -203,8 +212,37 @@ def write_meshes(scene: SyntheticScene, folder: str | Path) -> None:
                 raise OSError(f"{folder / name}: open3d could not write the mesh")
 
 
+def _write_visibility(path: Path, visibility: np.ndarray) -> None:
+    """visibility.npz: ``bits`` (the (V, F) bool array, bit-packed along F) and ``shape``."""
+    visibility = np.asarray(visibility, dtype=bool)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as handle:
+            np.savez_compressed(handle, bits=np.packbits(visibility, axis=1), shape=np.asarray(visibility.shape, np.int64))
+
+
 # ---------------------------------------------------------------------------------------------
 # Reading.
+
+
+def read_visibility(folder: str | Path, num_views: int, num_triangles: int) -> np.ndarray | None:
+    """The (num_views, num_triangles) bool per-view visibility of ``gt_mesh.ply``'s triangles, or
+    None when the folder has none (written before it existed, or not by the generator).
+
+    Raises:
+        PolarInputError: unreadable, or its shape does not fit the views and the mesh.
+    """
+    path = Path(folder) / VISIBILITY_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            bits, shape = data["bits"], tuple(int(v) for v in data["shape"])
+    except (OSError, ValueError, KeyError) as err:
+        raise PolarInputError(path, f"unreadable visibility ({err})") from None
+    if shape != (num_views, num_triangles) or bits.shape != (num_views, (num_triangles + 7) // 8):
+        raise PolarInputError(path, f"visibility has shape {shape}, expected ({num_views}, {num_triangles}): "
+                              "views x triangles of gt_mesh.ply")
+    return np.unpackbits(bits, axis=1, count=num_triangles).astype(bool)
 
 
 def is_scene_folder(folder: str | Path) -> bool:
@@ -496,4 +534,5 @@ def read_scene(folder: str | Path) -> SyntheticScene:
         mesh_triangles=np.asarray(mesh.triangles, dtype=np.int64),
         meta=meta,
         object_triangles=object_triangles,
+        visibility=read_visibility(folder, len(views), len(read_gt_mesh(folder).triangles)),
     )

@@ -40,6 +40,9 @@ __all__ = [
     "tube",
     "look_at",
     "orbit_cameras",
+    "spiral_cameras",
+    "scene_cameras",
+    "CAMERA_LAYOUTS",
     "intrinsics",
     "evaluate_albedo",
 ]
@@ -64,14 +67,21 @@ class Texture:
 
 @dataclass(frozen=True)
 class Material:
-    """A dielectric with a Lambertian diffuse lobe and a Blinn-Phong specular lobe.
+    """A dielectric (or a conductor) with a Lambertian diffuse lobe and a Blinn-Phong specular lobe.
 
     Attributes:
         name: material name (recorded in the scene meta).
         albedo: (3,) RGB diffuse albedo.
         texture: procedural modulation of ``albedo``.
-        specular: specular weight k_s (white: dielectric highlights take the light's colour).
+        specular: specular weight k_s.
         shininess: Blinn-Phong exponent (higher = smaller, sharper highlights).
+        refractive_index: n of this material's Fresnel polarization; None: the renderer's
+            (``generate_scene(refractive_index=...)``).
+        extinction: k of a conductor's complex index n + i k (0: a dielectric). A conductor (a
+            metal) polarizes its reflection by the conductor Fresnel equations and its diffuse
+            lobe (rough-surface scattering) not at all; ``refractive_index`` must then be given.
+        specular_tint: (3,) RGB colour of the specular lobe: white for a dielectric (highlights
+            take the light's colour), the metal's colour for a conductor.
     """
 
     name: str
@@ -79,6 +89,22 @@ class Material:
     texture: Texture = field(default_factory=Texture)
     specular: float = 0.0
     shininess: float = 32.0
+    refractive_index: float | None = None
+    extinction: float = 0.0
+    specular_tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if self.extinction < 0:
+            raise ValueError(f"material {self.name!r}: extinction must be >= 0, got {self.extinction}")
+        if self.extinction > 0 and not (self.refractive_index or 0) > 0:
+            raise ValueError(f"material {self.name!r}: a conductor (extinction > 0) needs refractive_index > 0")
+        if self.extinction == 0 and self.refractive_index is not None and not self.refractive_index > 1:
+            raise ValueError(f"material {self.name!r}: a dielectric's refractive_index must be > 1, got {self.refractive_index}")
+
+    @property
+    def is_conductor(self) -> bool:
+        """A metal: complex index with extinction k > 0."""
+        return self.extinction > 0
 
 
 @dataclass(frozen=True)
@@ -119,6 +145,10 @@ class SceneSpec:
         object_triangles: (F,) bool, True for the triangles of the object being reconstructed,
             False for supporting geometry (floor, backdrop); None means every triangle is object.
             The evaluation ground truth (``gt_mesh.ply``, docs/evaluation.md) is the object part.
+        camera_layout: where the cameras sit between the elevations (:func:`scene_cameras`):
+            ``"rings"`` (three elevation rings, :func:`orbit_cameras`) or ``"spiral"`` (evenly
+            spread over the band of elevations, :func:`spiral_cameras`).
+        camera_azimuth_deg: azimuth of the first camera (turns the whole layout about the z axis).
     """
 
     name: str
@@ -136,6 +166,8 @@ class SceneSpec:
     elevations_deg: tuple[float, float]
     background: float = 0.04
     object_triangles: np.ndarray | None = None
+    camera_layout: str = "rings"
+    camera_azimuth_deg: float = 0.0
 
     def object_mask(self) -> np.ndarray:
         """(F,) bool: which triangles belong to the object (all of them when not specified)."""
@@ -300,13 +332,19 @@ def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
     return np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
 
 
+#: Camera layouts of :attr:`SceneSpec.camera_layout`.
+CAMERA_LAYOUTS = ("rings", "spiral")
+
+
 def orbit_cameras(
-    num_views: int, target, distance: float, elevations_deg: tuple[float, float], rings: int = 3
+    num_views: int, target, distance: float, elevations_deg: tuple[float, float], rings: int = 3,
+    azimuth_deg: float = 0.0,
 ) -> list[np.ndarray]:
     """World_to_camera matrices on ``rings`` elevation rings around ``target``.
 
     View i sits on ring i % rings (elevations evenly spread over ``elevations_deg``) at azimuth
-    2 pi i / num_views (+ a per-ring offset), so any prefix of views covers the whole circle.
+    2 pi i / num_views (+ a per-ring offset, + ``azimuth_deg``), so any prefix of views covers
+    the whole circle.
 
     Returns:
         ``num_views`` (4, 4) float64 arrays.
@@ -318,9 +356,49 @@ def orbit_cameras(
     for i in range(num_views):
         elev = elevations[i % rings]
         azim = 2 * np.pi * i / num_views + 0.5 * np.pi * (i % rings) / rings
-        eye = target + distance * np.array([math.cos(elev) * math.cos(azim), math.cos(elev) * math.sin(azim), math.sin(elev)])
-        out.append(look_at(eye, target))
+        if azimuth_deg:
+            azim += math.radians(azimuth_deg)
+        out.append(look_at(_orbit_eye(target, distance, elev, azim), target))
     return out
+
+
+def spiral_cameras(
+    num_views: int, target, distance: float, elevations_deg: tuple[float, float], azimuth_deg: float = 0.0
+) -> list[np.ndarray]:
+    """World_to_camera matrices spread evenly over the band of elevations ``elevations_deg``.
+
+    A golden-angle spiral: view i sits at the sine of its elevation (i + 1/2) / num_views of the way
+    through the band (equal areas of the band per view) and at azimuth i x 137.5 deg (+
+    ``azimuth_deg``), so the views cover the band without rings or gaps.
+
+    Returns:
+        ``num_views`` (4, 4) float64 arrays.
+    """
+    low, high = (math.sin(math.radians(e)) for e in elevations_deg)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    target = np.asarray(target, float)
+    out = []
+    for i in range(num_views):
+        elev = math.asin(low + (i + 0.5) / num_views * (high - low))
+        azim = i * golden + math.radians(azimuth_deg)
+        out.append(look_at(_orbit_eye(target, distance, elev, azim), target))
+    return out
+
+
+def _orbit_eye(target: np.ndarray, distance: float, elevation: float, azimuth: float) -> np.ndarray:
+    """Camera centre at ``distance`` from ``target`` seen at ``elevation`` / ``azimuth`` (radians)."""
+    return target + distance * np.array(
+        [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
+
+
+def scene_cameras(spec: "SceneSpec", num_views: int) -> list[np.ndarray]:
+    """The ``num_views`` world_to_camera matrices of ``spec`` (its :attr:`~SceneSpec.camera_layout`)."""
+    if spec.camera_layout == "rings":
+        return orbit_cameras(num_views, spec.target, spec.camera_distance, spec.elevations_deg,
+                             azimuth_deg=spec.camera_azimuth_deg)
+    if spec.camera_layout == "spiral":
+        return spiral_cameras(num_views, spec.target, spec.camera_distance, spec.elevations_deg, spec.camera_azimuth_deg)
+    raise ValueError(f"unknown camera layout {spec.camera_layout!r} (known: {', '.join(CAMERA_LAYOUTS)})")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -7,11 +7,14 @@ Pipeline per view (docs/dataset-format.md describes the model and the files):
    masks mark the pixels whose first hit is the object (``SceneSpec.object_triangles``; a floor
    is background) unless ``generate_scene(mask="surface")``.
 2. Shading in training-colour units (the colour a trainer sees, s0 / 2): Lambertian diffuse
-   c_d = albedo * (ambient + sum_l E_l max(n.l, 0) vis_l) and a white Blinn-Phong highlight
-   c_s = k_s sum_l E_l max(n.h, 0)^shininess [n.l > 0] vis_l, with lights fixed in the world.
-3. Polarization (Fresnel, unpolarized light, n = ``refractive_index``), per pixel
+   c_d = albedo * (ambient + sum_l E_l max(n.l, 0) vis_l) and a Blinn-Phong highlight
+   c_s = k_s tint sum_l E_l max(n.h, 0)^shininess [n.l > 0] vis_l (tint white for a dielectric,
+   the metal's colour for a conductor), with lights fixed in the world.
+3. Polarization (Fresnel, unpolarized light, n = the material's ``refractive_index`` or else
+   ``refractive_index``), per pixel
    s = 2 c_d [1, rho_d cos 2a, rho_d sin 2a] + 2 c_s [1, -rho_s cos 2a, -rho_s sin 2a],
-   rho_d = dolp_diffuse(theta), rho_s = dolp_specular(theta), theta the angle between the normal
+   rho_d = dolp_diffuse(theta), rho_s = dolp_specular(theta) (a conductor: rho_d = 0 and rho_s
+   = dolp_specular_conductor(theta, n, k)), theta the angle between the normal
    and the direction to the camera, a the perspective-phase-angle (PPA) azimuth of the normal:
    diffuse AoLP = a, specular AoLP = a + pi/2 (docs/conventions.md).
 4. Sensor: four angle images I(beta) = (s0 + s1 cos 2beta + s2 sin 2beta) / 2, Gaussian noise,
@@ -19,11 +22,13 @@ Pipeline per view (docs/dataset-format.md describes the model and the files):
    quantisation to ``quantize_bits``; ``View.stokes`` is recomputed from these images.
 
 The background (no hit) is a dim unpolarized backdrop, weakly textured by the world ray direction.
+Besides the views, the scene records which view sees which of the object's triangles
+(``SyntheticScene.visibility``, exact ray casting: :func:`polargs_plugin.data.visibility.triangle_visibility`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -41,10 +46,11 @@ from polargs_plugin.data.scenes import (
     build_scene,
     evaluate_albedo,
     intrinsics,
-    orbit_cameras,
+    scene_cameras,
 )
+from polargs_plugin.data.visibility import triangle_visibility
 from polargs_plugin.optics.azimuth import normal_azimuth, pixel_rays
-from polargs_plugin.optics.fresnel import dolp_diffuse, dolp_specular
+from polargs_plugin.optics.fresnel import dolp_diffuse, dolp_specular, dolp_specular_conductor
 from polargs_plugin.optics.stokes import intensities_from_stokes, stokes_from_intensities
 from polargs_plugin.types import View
 
@@ -75,7 +81,9 @@ MASK_KINDS = ("object", "surface")
 #: Bumped whenever the same settings would generate different files, so that caches keyed by
 #: settings (``polargs ablate --scene-cache``) never hand out an older generator's scene.
 #: 2: masks mark the object only by default (was: every surface).
-GENERATOR_VERSION = 2
+#: 3: per-view visibility of the object's triangles (visibility.npz); per-material optics
+#: (refractive index, conductors, specular tint) in scene.json. The images did not change.
+GENERATOR_VERSION = 3
 #: Supported sensor bit depths (angle images are always quantised, as a real sensor's are).
 QUANTIZE_BITS = (8, 16)
 #: A scene size for tests and smoke runs: ``generate_scene(name, **SMALL_SETTINGS)``.
@@ -136,6 +144,9 @@ class SyntheticScene:
         object_triangles: (F,) bool, the triangles of the object to reconstruct (the floor of
             ``glossy_plane_sphere`` is not); None = every triangle. :meth:`object_mesh` is the
             evaluation ground truth (docs/evaluation.md).
+        visibility: (num_views, F') bool, view v sees the centroid of triangle f of
+            :meth:`object_mesh` from its front side, unhidden (a floor hides too); None when not
+            computed (a scene folder written before it existed).
     """
 
     name: str
@@ -149,6 +160,7 @@ class SyntheticScene:
     mesh_triangles: np.ndarray
     meta: dict = field(default_factory=dict)
     object_triangles: np.ndarray | None = None
+    visibility: np.ndarray | None = None
 
     def object_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """(vertices (V', 3), triangles (F', 3)) of the object only, unused vertices dropped."""
@@ -208,7 +220,7 @@ class SceneRenderer:
 
     Args:
         spec: the scene.
-        refractive_index: n of every material (Fresnel DoLP).
+        refractive_index: n of every material that does not give its own (Fresnel DoLP).
         shadows: cast shadow rays towards each light.
     """
 
@@ -246,8 +258,7 @@ class SceneRenderer:
         view = -dirs[hit] / np.linalg.norm(dirs[hit], axis=1, keepdims=True)
         diffuse, specular = self._shade(hits, view)
         theta = torch.from_numpy(np.arccos(np.clip(np.einsum("ni,ni->n", hits.normal, view), 0.0, 1.0)))
-        rho_d = dolp_diffuse(theta, self.refractive_index).numpy()
-        rho_s = dolp_specular(theta, self.refractive_index).numpy()
+        rho_d, rho_s = self._dolp(theta, hits.material)
 
         def image(values: np.ndarray) -> Tensor:
             """Scatter per-hit values (M, C) into a (C, H, W) image, 0 where nothing was hit."""
@@ -283,6 +294,29 @@ class SceneRenderer:
             stokes=stokes,
         )
 
+    def _dolp(self, theta: Tensor, material: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(diffuse DoLP, specular DoLP), (M,) each, of hits at zenith ``theta`` (M,) on the materials
+        ``material`` (M,): the renderer's index for every hit, then each material's own optics."""
+        rho_d = dolp_diffuse(theta, self.refractive_index).numpy()
+        rho_s = dolp_specular(theta, self.refractive_index).numpy()
+        for index, item in enumerate(self.spec.materials):
+            sel = material == index
+            if not sel.any() or (item.refractive_index is None and not item.is_conductor):
+                continue
+            if item.is_conductor:
+                rho_d[sel] = 0.0  # a metal re-emits no diffusely polarized light
+                rho_s[sel] = dolp_specular_conductor(theta[sel], item.refractive_index, item.extinction).numpy()
+            else:
+                rho_d[sel] = dolp_diffuse(theta[sel], item.refractive_index).numpy()
+                rho_s[sel] = dolp_specular(theta[sel], item.refractive_index).numpy()
+        return rho_d, rho_s
+
+    def visibility(self, cameras: list[np.ndarray], K: np.ndarray, width: int, height: int) -> np.ndarray:
+        """(len(cameras), F') bool: which of the object's triangles each camera sees
+        (:func:`~polargs_plugin.data.visibility.triangle_visibility`, the whole scene hiding them)."""
+        vertices, triangles = object_submesh(self.spec.vertices, self.spec.triangles, self.spec.object_triangles)
+        return triangle_visibility(vertices, triangles, [(K, w2c, width, height) for w2c in cameras], self._scene)
+
     def _intersect(self, origin: np.ndarray, dirs: np.ndarray) -> _Hits:
         """Cast rays from ``origin`` along ``dirs`` (N, 3); shading normals face the ray origin."""
         spec = self.spec
@@ -313,11 +347,13 @@ class SceneRenderer:
         """Diffuse and specular RGB (M, 3) of the hits seen along ``view`` (M, 3, towards the camera)."""
         spec, count = self.spec, hits.points.shape[0]
         albedo, specular_weight, shininess = np.zeros((count, 3)), np.zeros(count), np.ones(count)
+        tint = np.ones((count, 3))
         for index, material in enumerate(spec.materials):
             sel = hits.material == index
             albedo[sel] = evaluate_albedo(hits.points[sel], material)
             specular_weight[sel] = material.specular
             shininess[sel] = material.shininess
+            tint[sel] = material.specular_tint
         irradiance = np.full((count, 3), spec.ambient)
         highlight = np.zeros((count, 3))
         for light in spec.lights:
@@ -331,7 +367,7 @@ class SceneRenderer:
             cos_half = np.clip(np.einsum("ni,ni->n", hits.normal, half), 0.0, 1.0)
             irradiance += strength * (np.clip(cos_light, 0.0, None) * lit)[:, None]
             highlight += strength * (specular_weight * cos_half**shininess * lit)[:, None]
-        return albedo * irradiance, highlight
+        return albedo * irradiance, highlight * tint
 
     @staticmethod
     def _light_at(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -416,7 +452,8 @@ def generate_scene(
 
     Args:
         name: one of :data:`SCENE_NAMES`, or a custom :class:`SceneSpec`.
-        num_views: number of cameras (>= 1), on three elevation rings.
+        num_views: number of cameras (>= 1), placed by the scene's camera layout (three elevation rings
+            for the bundled scenes).
         width: image width W (pixels).
         height: image height H (pixels).
         seed: noise seed.
@@ -440,11 +477,18 @@ def generate_scene(
         >>> scene.views[0].stokes.shape, scene.angle_images[0].shape
         (torch.Size([3, 3, 32, 32]), torch.Size([4, 3, 32, 32]))
     """
+    return assemble_scene(generate_scene_views(name, num_views, width, height, seed, noise_std, quantize_bits,
+                                               refractive_index, shadows=shadows, highlight_threshold=highlight_threshold,
+                                               mask=mask, progress=progress))
+
+
+def assemble_scene(parts: Iterable[SyntheticScene]) -> SyntheticScene:
+    """One scene of the parts :func:`generate_scene_views` yields (their views in order)."""
     out = None
-    for part in generate_scene_views(name, num_views, width, height, seed, noise_std, quantize_bits, refractive_index,
-                                     shadows=shadows, highlight_threshold=highlight_threshold, mask=mask,
-                                     progress=progress):
+    for part in parts:
         out = part if out is None else _extend(out, part)
+    if out is None:
+        raise ValueError("no views to assemble")
     return out
 
 
@@ -474,7 +518,7 @@ def generate_scene_views(
     renderer = SceneRenderer(spec, refractive_index, shadows)
     # Field of view is horizontal; keep the object's pixel size independent of the aspect ratio.
     K = intrinsics(width, height, spec.fov_deg)
-    cameras = orbit_cameras(num_views, spec.target, spec.camera_distance, spec.elevations_deg)
+    cameras = scene_cameras(spec, num_views)
     streams = np.random.SeedSequence(seed).spawn(num_views)
     meta = _meta(spec, num_views, width, height, seed, noise_std, quantize_bits, refractive_index, shadows,
                  highlight_threshold, mask)
@@ -483,6 +527,7 @@ def generate_scene_views(
         sensed = apply_sensor(clean.stokes, np.random.default_rng(streams[index]), noise_std, quantize_bits)
         part = _empty_scene(spec)
         _append_view(part, index, K, cameras[index], clean, sensed, mask, highlight_threshold)
+        part.visibility = renderer.visibility([cameras[index]], K, width, height)
         part.meta = dict(meta)
         yield part
 
@@ -491,6 +536,8 @@ def _extend(scene: SyntheticScene, part: SyntheticScene) -> SyntheticScene:
     """``scene`` with the views of ``part`` appended (the per-view lists)."""
     for name in ("views", "angle_images", "diffuse_gt", "specular_gt", "highlight_masks", "overexposed_masks"):
         getattr(scene, name).extend(getattr(part, name))
+    if scene.visibility is not None and part.visibility is not None:
+        scene.visibility = np.concatenate([scene.visibility, part.visibility])
     return scene
 
 
@@ -561,7 +608,7 @@ def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_b
         "aolp_convention": "0.5*atan2(s2,s1) mod pi, ccw from image +x towards image up; "
         "diffuse AoLP = azimuth, specular = azimuth + pi/2",
         "stokes": "s0=(I0+I45+I90+I135)/2, s1=I0-I90, s2=I45-I135; training colour s0/2",
-        "shading": "Lambert diffuse + white Blinn-Phong specular, world-fixed lights"
+        "shading": "Lambert diffuse + Blinn-Phong specular (white, a metal's tint), world-fixed lights"
         + (", shadow rays" if shadows else ", no shadows"),
         "specular_zenith": "angle between shading normal and view direction",
         "ambient": spec.ambient,
@@ -572,7 +619,8 @@ def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_b
         "materials": [asdict(m) for m in spec.materials],
         "lights": [asdict(light) for light in spec.lights],
         "camera": {"target": list(spec.target), "distance": spec.camera_distance, "fov_deg": spec.fov_deg,
-                   "elevations_deg": list(spec.elevations_deg)},
+                   "elevations_deg": list(spec.elevations_deg), "layout": spec.camera_layout,
+                   "azimuth_deg": spec.camera_azimuth_deg},
         # Evaluation ground truth: the object's triangles of the scene mesh, [start, end) ranges.
         "object_triangles": triangle_ranges(spec.object_mask()),
     }

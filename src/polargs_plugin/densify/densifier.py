@@ -15,7 +15,9 @@ On each scheduled iteration, for the current training view:
    views have been processed); elsewhere they can be far off early in training (textureless
    surfaces, a rough model), and checking against them rejects good pixels;
 5. store the kept normals as the L_n target ``N_opt`` of the view (:meth:`normal_target`);
-6. seed new Gaussians where the render has a hole or a wrong surface (seeding.py).
+6. seed new Gaussians where the render has a hole or a wrong surface (seeding.py), at most
+   ``max_new_per_call`` a call and, with ``budget_fraction``, at most that fraction of the model's
+   size at the first call over the whole run.
 """
 
 from __future__ import annotations
@@ -83,6 +85,10 @@ class PolarDensifier:
         self._targets: dict[str, tuple[Tensor, Tensor]] = {}
         self._generator = torch.Generator().manual_seed(config.densify.patchmatch.seed)
         self.calls = 0
+        # Gaussians appended so far, and the most all calls may append (None: no budget; set at
+        # the first call from the model's size then)
+        self.appended = 0
+        self.budget: int | None = None
         # running pixel counts of each stage (photometric, kept = N_opt, seed), for diagnostics
         self.stats = {"estimated": 0, "photometric": 0, "kept": 0, "seeds": 0, "added": 0}
 
@@ -115,6 +121,10 @@ class PolarDensifier:
             return None
         if view.name not in self._index:
             raise KeyError(f"view '{view.name}' is not one of the densifier's views")
+        if self.config.densify.budget_fraction is not None and self.budget is None:
+            if gaussians is None:
+                raise ValueError("PolarDensifier: densify.budget_fraction needs the current Gaussians")
+            self.budget = int(self.config.densify.budget_fraction * gaussians.means.shape[0])
         with torch.no_grad():
             return self._densify(view, render_fn, render)
 
@@ -180,11 +190,13 @@ class PolarDensifier:
                           relative_depth=seed_relative_depth(cfg.seed_depth_footprints, view.K),
                           normal=result.normal, K=view.K.to(dev), max_plane_deviation=cfg.seed_max_plane_deviation,
                           behind=cfg.seed_behind_surface)
+        max_new = cfg.max_new_per_call if self.budget is None else min(cfg.max_new_per_call, self.budget - self.appended)
         new = seed_gaussians(
             result.depth, result.normal, view.image.to(dev), view.K, view.world_to_camera, seeds,
-            stride=cfg.stride, max_new=cfg.max_new_per_call, initial_opacity=cfg.initial_opacity,
+            stride=cfg.stride, max_new=max(0, max_new), initial_opacity=cfg.initial_opacity,
             thin_ratio=cfg.thin_scale_ratio, generator=self._generator,
         )
+        self.appended += len(new)
         for key, count in (("estimated", mask.sum() if mask is not None else depth.numel()),
                            ("photometric", photometric_ok.sum()), ("kept", keep.sum()),
                            ("seeds", seeds.sum()), ("added", len(new))):
@@ -211,6 +223,8 @@ class PolarDensifier:
     def state_dict(self) -> dict:
         return {
             "calls": self.calls,
+            "appended": self.appended,
+            "budget": self.budget,
             "generator": self._generator.get_state(),
             "depths": {k: v.cpu() for k, v in self._depths.items()},
             "targets": {k: {"normal": n.cpu(), "valid": m.cpu()} for k, (n, m) in self._targets.items()},
@@ -218,6 +232,9 @@ class PolarDensifier:
 
     def load_state_dict(self, state: dict) -> None:
         self.calls = int(state["calls"])
+        # checkpoints written before the budget existed hold neither: nothing counted, no budget set
+        self.appended = int(state.get("appended", 0))
+        self.budget = state.get("budget")
         self._generator.set_state(state["generator"])
         self._depths = {k: v.to(STATE_DTYPE) for k, v in state["depths"].items()}
         self._targets = {k: (v["normal"].to(STATE_DTYPE), v["valid"]) for k, v in state["targets"].items()}

@@ -19,10 +19,18 @@ than ``sum_j w_j`` matters: the latter renormalises the weights, so a pixel seen
 (e.g. a diffuse surface facing the camera, AoLP noise of tens of degrees) would be judged on that
 noise at full strength; here such a pixel can only be rejected in proportion to its signal, and
 one with no polarization signal is not judged at all.
+
+Incidence test (``max_incidence_deg``): a view that sees a surface edge-on (or from behind) gives
+no evidence about it: PatchMatch's window is stretched several pixels along the surface, and a
+rendered depth that agrees with a wrong estimate there agrees by accident. With the test, a
+source counts as consistent only when it sees the reference pixel's point, with its normal, from
+the front at an incidence angle below the threshold, and the reference pixel itself is kept only
+when the reference sees it so.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -34,7 +42,7 @@ from polargs_plugin.densify.homography import pixel_grid, pixel_rays
 from polargs_plugin.optics.azimuth import aolp_from_normals
 from polargs_plugin.types import View
 
-__all__ = ["reprojection_check", "polar_residual", "consistency_filter"]
+__all__ = ["reprojection_check", "polar_residual", "incidence_cosine", "consistency_filter"]
 
 
 def _sample(image: Tensor, pix: Tensor, mode: str = "nearest") -> Tensor:
@@ -130,6 +138,28 @@ def polar_residual(
     return residual, weight
 
 
+def incidence_cosine(depth: Tensor, normal: Tensor, K: Tensor, world_to_camera: Tensor,
+                     target_world_to_camera: Tensor) -> Tensor:
+    """(1, H, W) cosine of the incidence angle at which a target camera sees each pixel's surface.
+
+    The pixel's point (``depth`` along its ray) and its camera-frame ``normal`` (facing the
+    reference camera) are moved into the target camera; the cosine is that of the angle between
+    the normal and the direction from the point to the target camera, negative when the target
+    sees the surface from behind. The reference camera itself as target gives the pixel's own
+    incidence. Pixels without a depth get -1.
+    """
+    dev, dt = depth.device, torch.float32
+    K, w2c, t_w2c = K.to(dev, dt), world_to_camera.to(dev, dt), target_world_to_camera.to(dev, dt)
+    h, w = depth.shape[-2:]
+    point = depth[0].float() * pixel_rays(K, h, w)
+    rel_R = t_w2c[:3, :3] @ w2c[:3, :3].T
+    rel_t = t_w2c[:3, 3] - rel_R @ w2c[:3, 3]
+    point = torch.einsum("ij,jhw->ihw", rel_R, point) + rel_t[:, None, None]
+    turned = torch.einsum("ij,jhw->ihw", rel_R, F.normalize(normal.float(), dim=0))
+    cosine = -(turned * point).sum(0) / torch.linalg.vector_norm(point, dim=0).clamp_min(1e-12)
+    return torch.where(depth[0] > 0, cosine, torch.full_like(cosine, -1.0))[None]
+
+
 def consistency_filter(
     depths: Sequence[Tensor],
     normals: Sequence[Tensor] | None,
@@ -169,12 +199,16 @@ def consistency_filter(
         count = torch.zeros_like(depths[i], dtype=torch.int64)
         res_sum = torch.zeros_like(depths[i], dtype=torch.float32)
         polar = cfg.use_polar and aolps is not None and normals is not None
+        steep = _steep_cosine(cfg, normals)
         for j in others:
             reproj, rel, valid, pix = reprojection_check(
                 depths[i], views[i].K, views[i].world_to_camera,
                 depths[j], views[j].K, views[j].world_to_camera,
             )
             ok = valid & (reproj <= cfg.max_reprojection_px) & (rel <= cfg.max_relative_depth)
+            if steep is not None:
+                ok = ok & (incidence_cosine(depths[i], normals[i], views[i].K, views[i].world_to_camera,
+                                            views[j].world_to_camera) >= steep)
             count += ok
             if polar:
                 r, w = polar_residual(
@@ -184,7 +218,19 @@ def consistency_filter(
                 )
                 res_sum += (w * r) * ok
         keep = (count >= cfg.min_consistent_views) & (depths[i] > 0)
+        if steep is not None:
+            keep = keep & (incidence_cosine(depths[i], normals[i], views[i].K, views[i].world_to_camera,
+                                            views[i].world_to_camera) >= steep)
         if polar:
             keep = keep & (res_sum / count.clamp_min(1) <= cfg.max_polar_residual)
         masks.append(keep)
     return masks[0] if reference is not None else torch.stack(masks)
+
+
+def _steep_cosine(cfg: FilterConfig, normals: Sequence[Tensor] | None) -> float | None:
+    """cos(max_incidence_deg), or None without the incidence test; it needs the normals."""
+    if cfg.max_incidence_deg is None:
+        return None
+    if normals is None:
+        raise ValueError("consistency_filter: max_incidence_deg needs the normals")
+    return math.cos(math.radians(cfg.max_incidence_deg))

@@ -22,7 +22,9 @@ from polargs_plugin.optics.fresnel import (
     dolp_diffuse,
     dolp_diffuse_max,
     dolp_specular,
+    dolp_specular_conductor,
     fresnel_reflectance,
+    fresnel_reflectance_conductor,
     zenith_from_dolp_diffuse,
 )
 from polargs_plugin.optics.mosaic import (
@@ -61,7 +63,9 @@ __all__ = [
     "dolp_diffuse",
     "dolp_diffuse_max",
     "dolp_specular",
+    "dolp_specular_conductor",
     "fresnel_reflectance",
+    "fresnel_reflectance_conductor",
     "zenith_from_dolp_diffuse",
     "MOSAIC_PATTERNS",
     "POLARIZER_LATTICE",

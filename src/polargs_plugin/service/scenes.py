@@ -32,16 +32,19 @@ SCENE_MARKERS = ("scene.json", "cameras.json", "gt_mesh.ply")
 
 @dataclass(frozen=True)
 class SceneRequest:
-    """A bundled scene to render (``polargs generate --help`` lists the scenes).
+    """A bundled scene, or a scene of the procedural family, to render (``polargs generate --help``
+    lists the scenes; docs/scene-family.md describes the family).
 
     Attributes:
-        scene: the scene's name.
-        views: number of cameras (default 24).
-        width, height: image size in pixels (default 128x128).
-        seed: sensor-noise seed (default 0).
-        noise_std: Gaussian noise std per angle image, [0, 1] units; None: the generator's 0.005.
+        scene: the scene's name, or ``family`` (the family scene of ``seed``).
+        views: number of cameras; None: 24 for a bundled scene, the seed's for the family.
+        width, height: image size in pixels; None: 128x128 for a bundled scene, the seed's for the family.
+        seed: sensor-noise seed (default 0); for the family also the scene's seed.
+        noise_std: Gaussian noise std per angle image, [0, 1] units; None: the generator's 0.005,
+            the seed's for the family.
         bits: sensor bit depth, 8 or 16; None: the generator's 8.
-        refractive_index: n of the Fresnel DoLP; None: the generator's 1.5.
+        refractive_index: n of the Fresnel DoLP; None: the generator's 1.5 (a family scene's
+            materials have their own).
         mask: what the masks mark: ``object`` (default) or ``surface`` (every surface, a floor too).
         pictures: also write AoLP / DoLP pictures per view and an overview under ``pictures/``.
         mosaic: write a polar folder of division-of-focal-plane raw frames instead of a scene
@@ -54,9 +57,9 @@ class SceneRequest:
     """
 
     scene: str
-    views: int = 24
-    width: int = 128
-    height: int = 128
+    views: int | None = None
+    width: int | None = None
+    height: int | None = None
     seed: int = 0
     noise_std: float | None = None
     bits: int | None = None
@@ -68,22 +71,24 @@ class SceneRequest:
 
     def render(self, progress: bool = False) -> "SyntheticScene":
         """Render the scene (the generator's defaults for every setting left None)."""
-        from polargs_plugin.data.synthetic import generate_scene
+        from polargs_plugin.data.synthetic import assemble_scene
 
-        return generate_scene(self.scene, num_views=self.views, width=self.width, height=self.height, seed=self.seed,
-                              progress=progress, **self._given())
+        return assemble_scene(self.render_views(progress))
 
     def render_views(self, progress: bool = False) -> Iterator["SyntheticScene"]:
         """:meth:`render` one view at a time (each item holds the next view)."""
+        from polargs_plugin.data.family import FAMILY, generate_family_scene_views
         from polargs_plugin.data.synthetic import generate_scene_views
 
-        return generate_scene_views(self.scene, num_views=self.views, width=self.width, height=self.height,
-                                    seed=self.seed, progress=progress, **self._given())
-
-    def _given(self) -> dict[str, Any]:
-        given = {"noise_std": self.noise_std, "quantize_bits": self.bits, "refractive_index": self.refractive_index,
-                 "mask": self.mask}
-        return {k: v for k, v in given.items() if v is not None}
+        given = {"noise_std": self.noise_std, "quantize_bits": self.bits, "mask": self.mask}
+        given = {k: v for k, v in given.items() if v is not None}
+        if self.scene == FAMILY:
+            size = None if self.width is None and self.height is None else (self.width or self.height, self.height or self.width)
+            return generate_family_scene_views(self.seed, num_views=self.views, size=size, progress=progress, **given)
+        if self.refractive_index is not None:
+            given["refractive_index"] = self.refractive_index
+        return generate_scene_views(self.scene, num_views=self.views or 24, width=self.width or 128,
+                                    height=self.height or 128, seed=self.seed, progress=progress, **given)
 
 
 @dataclass
@@ -125,16 +130,15 @@ class _Pictures:
     """AoLP / DoLP pictures of each view as it is written, and an overview of a few views (rows:
     s0 / AoLP / DoLP / AoLP-with-DoLP columns) at the end."""
 
-    def __init__(self, folder: Path, num_views: int):
+    def __init__(self, folder: Path):
         self.folder, self.count, self.rows = folder / "pictures", 0, []
-        self.step = max(1, num_views // 4)
         self.index = 0
 
-    def add(self, view: "View") -> None:
+    def add(self, view: "View", num_views: int) -> None:
         from polargs_plugin.viz import polar_panels, save_polar_pictures
 
         self.count += len(save_polar_pictures(view.stokes, self.folder, view.name))
-        if self.index % self.step == 0 and len(self.rows) < 4:
+        if self.index % max(1, num_views // 4) == 0 and len(self.rows) < 4:
             panels = polar_panels(view.stokes)
             self.rows.append([panels[k] for k in ("s0", "aolp", "dolp", "aolp_dolp")])
         self.index += 1
@@ -220,7 +224,7 @@ def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = Fa
     try:
         writer = _writer(request, staging)
         statistics = SceneStatistics()
-        pictures = _Pictures(staging, request.views) if request.pictures else None
+        pictures = _Pictures(staging) if request.pictures else None
         exporter = _ColmapExport(staging / export, request.seed) if export is not None else None
         rendering = writing = 0.0
         start = time.perf_counter()
@@ -231,7 +235,7 @@ def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = Fa
             statistics.add(part)
             for view in part.views:
                 if pictures is not None:
-                    pictures.add(view)
+                    pictures.add(view, part.meta["num_views"])
                 if exporter is not None:
                     exporter.add(view)
             start = time.perf_counter()
@@ -244,11 +248,16 @@ def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = Fa
         writing += time.perf_counter() - start
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return GeneratedScene(out, part.name, part.meta, request.views, statistics.figures(part), count, rendering, writing)
+    return GeneratedScene(out, part.name, part.meta, part.meta["num_views"], statistics.figures(part), count, rendering,
+                          writing)
 
 
 def _check_mosaic_size(request: SceneRequest) -> None:
-    step = {"mono": 2, "rgb": 4}.get(request.mosaic or "", 1)
+    if request.mosaic is None:
+        return
+    if request.width is None or request.height is None:
+        raise PolarInputError("--size", f"give the frame's size with --mosaic (a {request.scene} scene draws its own)")
+    step = {"mono": 2, "rgb": 4}[request.mosaic]
     if request.width % step or request.height % step:
         raise PolarInputError("--size", f"a {request.mosaic} mosaic needs a width and height divisible by {step}, "
                               f"got {request.width}x{request.height}")
@@ -293,6 +302,8 @@ class SceneStatistics:
     def __init__(self) -> None:
         self.pixels = self.object = self.highlights = self.overexposed = 0
         self.dolps: list = []
+        self.visibility: list = []  # (views, F') rows of the parts that carry them
+        self.centres: list = []  # the camera centres of those rows
 
     def add(self, part: "SyntheticScene") -> None:
         from polargs_plugin.optics.stokes import dolp_from_stokes
@@ -304,23 +315,39 @@ class SceneStatistics:
             self.highlights += int(highlight.sum())
             self.overexposed += int(over.sum())
             self.dolps.append(dolp_from_stokes(view.stokes.mean(dim=1, keepdim=True))[mask])
+        if part.visibility is not None:
+            self.visibility.append(part.visibility)
+            self.centres += [view.camera_center.double().numpy() for view in part.views]
 
     def figures(self, scene: "SyntheticScene") -> dict[str, Any]:
+        """The figures, ``scene`` (any part) giving the mesh."""
+        import numpy as np
         import torch
 
+        from polargs_plugin.data.visibility import class_fractions, classify_counts, triangle_counts
+
         inside = max(self.object, 1)
-        return {
+        stats = {
             "object_fraction": self.object / max(self.pixels, 1),
             "mesh_vertices": len(scene.mesh_vertices),
             "highlight_fraction": self.highlights / inside,
             "overexposed_fraction": self.overexposed / inside,
             "dolp_median": float(torch.cat(self.dolps).median()),
         }
+        if self.visibility:
+            vertices, triangles = scene.object_mesh()
+            well, grazing, area = triangle_counts(vertices, triangles, np.concatenate(self.visibility), self.centres)
+            codes = classify_counts(well, grazing)
+            stats["visibility"] = class_fractions(codes, area)
+            stats["unseen_fraction"] = float(area[codes < 0].sum() / area.sum())
+        return stats
 
 
 def scene_statistics(scene: "SyntheticScene") -> dict[str, Any]:
     """What a user checks first: the object's share of the pixels, the highlights' and the
-    overexposed pixels' share of the object, and the median DoLP on the object."""
+    overexposed pixels' share of the object, the median DoLP on the object, and (when the scene
+    has its per-view visibility) the shares of the object's seen surface area in each visibility
+    class (``visibility``: {many, few, grazing}; docs/evaluation.md) and the unseen share."""
     statistics = SceneStatistics()
     statistics.add(scene)
     return statistics.figures(scene)
