@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import datetime
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,8 @@ __all__ = ["write_report", "REPORT_NAME", "FIGURES_DIR"]
 
 REPORT_NAME = "report.md"
 FIGURES_DIR = "figures"
+#: The unit the report gives lengths in (the scene's own).
+UNITS = "scene units"
 NOT_EVALUATED_GREY = (0.62, 0.62, 0.62, 1.0)
 COLORS = {"base": "#7f7f7f", "reg": "#1f77b4", "no-dense": "#ff7f0e", "no-pc": "#2ca02c", "full": "#d62728"}
 
@@ -338,18 +341,29 @@ def write_report(out: str | os.PathLike, results: dict[str, Any] | None = None, 
     """
     out = Path(out)
     results = results if results is not None else gather(out)
-    rows, table = results["runs"], results["table"]
-    figures = out / FIGURES_DIR
+    rows = results["runs"]
     runs = {folder.name: folder for folder in find_runs(out)}
-    import json
+    lines = _report_head(out, results)
+    several_inits = len({r["init"] for r in rows}) > 1
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        for init in dict.fromkeys(r["init"] for r in rows if r["scene"] == scene):
+            lines += _scene_section(out, results, runs, scene, init, several_inits)
+    lines += _report_tail(out, command)
+    path = out / REPORT_NAME
+    with atomic_write(path) as handle:
+        handle.write("\n".join(lines))
+    return path
 
-    units = "scene units"
+
+def _report_head(out: Path, results: dict[str, Any]) -> list[str]:
+    """The report's title line, the results table with what its columns mean, and the variants."""
+    rows = results["runs"]
     commits = sorted({str(r["git_commit"]) for r in rows})
     lines = ["# PolarGS ablation report", ""]
     lines.append(f"Folder `{out}`; {len(rows)} runs; written {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}; "
                  f"git commit {', '.join(c[:12] if c != 'None' else 'unknown' for c in commits) or 'unknown'}.")
     lines += ["", "## Results", "", results.get("markdown") or "(no finished runs)", ""]
-    lines += [f"Chamfer (accuracy + completeness) / 2 against the GT mesh in {units}, restricted to the observed "
+    lines += [f"Chamfer (accuracy + completeness) / 2 against the GT mesh in {UNITS}, restricted to the observed "
               "object, distances above 5 % of the GT box diagonal dropped (`polargs eval`, docs/evaluation.md); "
               "\"uncapped\": the same means over every point (a missing or sunken part of the mesh shows there); "
               "\"visible Chamfer\": uncapped, over the GT surface that some training view sees in its GT depth map; "
@@ -358,65 +372,75 @@ def write_report(out: str | os.PathLike, results: dict[str, Any] | None = None, 
               "of every training view. Mean ± sample standard deviation over seeds; \"vs base\" / \"vs reg\": "
               "relative change of the mean (negative = better). Per-run figures (also accuracy uncapped and the "
               "fractions the cap dropped): results.csv, results.json.", ""]
-    lines += ["## Variants", ""] + [f"- `{v}`: {DESCRIPTIONS[v]}" for v in VARIANTS] + [""]
+    return lines + ["## Variants", ""] + [f"- `{v}`: {DESCRIPTIONS[v]}" for v in VARIANTS] + [""]
 
-    scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    several_inits = len({r["init"] for r in rows}) > 1
-    for scene in scenes:
-        for init in dict.fromkeys(r["init"] for r in rows if r["scene"] == scene):
-            tag = _slug(scene if not several_inits else f"{scene}-{init}")
-            members = [r for r in rows if r["scene"] == scene and r["init"] == init]
-            entries = [e for e in table if e["scene"] == scene and e["init"] == init]
-            reps: list[tuple[str, Path]] = []
-            for variant in dict.fromkeys(r["variant"] for r in members):
-                first = min((r for r in members if r["variant"] == variant), key=lambda r: r["seed"])
-                if first["run"] in runs:
-                    reps.append((variant, runs[first["run"]]))
-            seed_note = f"seed {min(r['seed'] for r in members)}"
-            lines += [f"## {scene}" + (f" (init {init})" if several_inits else ""), ""]
-            summary = json.loads((reps[0][1] / SUMMARY_NAME).read_text()) if reps else {}
-            if summary:
-                tc = summary.get("train_config", {})
-                lines += [f"{summary.get('num_views')} views, preset {summary.get('preset')} (factor {summary.get('factor')}), "
-                          f"{tc.get('iterations')} iterations, init {init} (ran: {', '.join(sorted({str(r['init_used']) for r in members}))}), "
-                          f"dataset `{summary.get('dataset')}`.", ""]
-            made = _metrics_figure(entries, members, figures / f"metrics_{tag}.png", units)
-            lines += ["### Chamfer and normal MAE", "", f"![Chamfer and normal MAE per variant]({made.relative_to(out)})", ""]
-            lines += _scene_verdict(results.get("verdicts") or [], scene, init)
-            made = _views_figure(reps, figures / f"views_{tag}.png")
-            if made:
-                lines += ["### Two views per variant", "",
-                          f"Rendered colour, normal map (x red, y up green, towards the camera blue) and depth error "
-                          f"(rendered median depth - GT depth, blue = in front of the GT surface) where both exist; {seed_note}.", "",
-                          f"![views]({made.relative_to(out)})", ""]
-            made = _mesh_error_figure(reps, figures / f"mesh_error_{tag}.png", units)
-            if made:
-                lines += ["### Mesh error", "",
-                          f"TSDF mesh vertices seen from the first view, coloured by signed distance to the GT mesh "
-                          f"(negative = inside the GT surface); title: median signed distance; {seed_note}.", "",
-                          f"![mesh error]({made.relative_to(out)})", ""]
-            pc_folder = next((f for v, f in sorted(reps, key=lambda p: p[0] != "full") if (f / "pc_maps.npz").is_file()), None)
-            if pc_folder is not None:
-                made = _pc_figure(pc_folder, figures / f"pc_inputs_{tag}.png")
-                if made:
-                    lines += ["### PC inputs", "",
-                              f"From `{pc_folder.name}`: training colour s0/2, AoLP coloured by hue (brightness = sqrt DoLP), "
-                              "DoLP, the specular and overexposed masks, and the colour targets I_diff (specular pixels) and "
-                              "I_chro (overexposed pixels) over a dimmed image.", "",
-                              f"![PC inputs]({made.relative_to(out)})", ""]
-            made = _curves_figure([(r["variant"], r["seed"], runs[r["run"]]) for r in members if r["run"] in runs],
-                                  figures / f"curves_{tag}.png")
-            if made:
-                lines += ["### Training curves", "", "One line per run (every seed), coloured by variant.", "",
-                          f"![training curves]({made.relative_to(out)})", ""]
 
+def _scene_section(out: Path, results: dict[str, Any], runs: dict[str, Path], scene: str, init: str,
+                   several_inits: bool) -> list[str]:
+    """One scene's (and initialisation's) section: its settings, figures and verdict."""
+    figures = out / FIGURES_DIR
+    tag = _slug(scene if not several_inits else f"{scene}-{init}")
+    members = [r for r in results["runs"] if r["scene"] == scene and r["init"] == init]
+    entries = [e for e in results["table"] if e["scene"] == scene and e["init"] == init]
+    reps: list[tuple[str, Path]] = []  # the first seed's run folder of each variant
+    for variant in dict.fromkeys(r["variant"] for r in members):
+        first = min((r for r in members if r["variant"] == variant), key=lambda r: r["seed"])
+        if first["run"] in runs:
+            reps.append((variant, runs[first["run"]]))
+    seed_note = f"seed {min(r['seed'] for r in members)}"
+    lines = [f"## {scene}" + (f" (init {init})" if several_inits else ""), ""]
+    summary = json.loads((reps[0][1] / SUMMARY_NAME).read_text()) if reps else {}
+    if summary:
+        tc = summary.get("train_config", {})
+        lines += [f"{summary.get('num_views')} views, preset {summary.get('preset')} (factor {summary.get('factor')}), "
+                  f"{tc.get('iterations')} iterations, init {init} (ran: {', '.join(sorted({str(r['init_used']) for r in members}))}), "
+                  f"dataset `{summary.get('dataset')}`.", ""]
+    made = _metrics_figure(entries, members, figures / f"metrics_{tag}.png", UNITS)
+    lines += ["### Chamfer and normal MAE", "", f"![Chamfer and normal MAE per variant]({made.relative_to(out)})", ""]
+    lines += _scene_verdict(results.get("verdicts") or [], scene, init)
+    return lines + _scene_pictures(out, reps, members, runs, tag, seed_note)
+
+
+def _scene_pictures(out: Path, reps: list[tuple[str, Path]], members: list[dict[str, Any]], runs: dict[str, Path],
+                    tag: str, seed_note: str) -> list[str]:
+    """A scene section's pictures: views, mesh error, PC inputs and training curves."""
+    figures, lines = out / FIGURES_DIR, []
+    made = _views_figure(reps, figures / f"views_{tag}.png")
+    if made:
+        lines += ["### Two views per variant", "",
+                  f"Rendered colour, normal map (x red, y up green, towards the camera blue) and depth error "
+                  f"(rendered median depth - GT depth, blue = in front of the GT surface) where both exist; {seed_note}.", "",
+                  f"![views]({made.relative_to(out)})", ""]
+    made = _mesh_error_figure(reps, figures / f"mesh_error_{tag}.png", UNITS)
+    if made:
+        lines += ["### Mesh error", "",
+                  f"TSDF mesh vertices seen from the first view, coloured by signed distance to the GT mesh "
+                  f"(negative = inside the GT surface); title: median signed distance; {seed_note}.", "",
+                  f"![mesh error]({made.relative_to(out)})", ""]
+    pc_folder = next((f for v, f in sorted(reps, key=lambda p: p[0] != "full") if (f / "pc_maps.npz").is_file()), None)
+    if pc_folder is not None:
+        made = _pc_figure(pc_folder, figures / f"pc_inputs_{tag}.png")
+        if made:
+            lines += ["### PC inputs", "",
+                      f"From `{pc_folder.name}`: training colour s0/2, AoLP coloured by hue (brightness = sqrt DoLP), "
+                      "DoLP, the specular and overexposed masks, and the colour targets I_diff (specular pixels) and "
+                      "I_chro (overexposed pixels) over a dimmed image.", "",
+                      f"![PC inputs]({made.relative_to(out)})", ""]
+    made = _curves_figure([(r["variant"], r["seed"], runs[r["run"]]) for r in members if r["run"] in runs],
+                          figures / f"curves_{tag}.png")
+    if made:
+        lines += ["### Training curves", "", "One line per run (every seed), coloured by variant.", "",
+                  f"![training curves]({made.relative_to(out)})", ""]
+    return lines
+
+
+def _report_tail(out: Path, command: str | None) -> list[str]:
+    """Failed runs with their logs, and the command that reproduces the folder."""
+    lines: list[str] = []
     failed = sorted(p for p in (out / "logs").glob("*.log") if not (out / p.stem / SUMMARY_NAME).is_file()) if (out / "logs").is_dir() else []
     if failed:
         lines += ["## Failed runs", ""] + [f"- `{p.stem}`: see `{p.relative_to(out)}`" for p in failed] + [""]
     if command:
         lines += ["## Reproduce", "", "```", command, "```", "",
                   "Finished runs are skipped when the command is run again; delete a run folder to redo it.", ""]
-    path = out / REPORT_NAME
-    with atomic_write(path) as handle:
-        handle.write("\n".join(lines))
-    return path
+    return lines
