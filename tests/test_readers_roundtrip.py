@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from polargs_plugin.data import cameras as cam
-from polargs_plugin.data.colmap import read_colmap_model
+from polargs_plugin.data.colmap import read_colmap_model, write_colmap_scene
 from polargs_plugin.data.neisf import read_neisf, write_neisf
 from polargs_plugin.data.nersp import read_nersp, write_nersp
 from polargs_plugin.data.pandora import read_pandora, write_pandora
@@ -199,6 +199,30 @@ def test_colmap_binary_model_matches_text(views, tmp_path):
     for name in text:
         np.testing.assert_allclose(binary[name].K, text[name].K, atol=1e-12)
         np.testing.assert_allclose(binary[name].world_to_camera, text[name].world_to_camera, atol=1e-12)
+
+
+def test_colmap_scene_export_writes_a_binary_model_colmap_reads(views, tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    points = np.array([[0.1, 0.2, 0.3], [1.0, -2.0, 0.5]])
+    colors = np.array([[10, 20, 30], [200, 100, 50]], dtype=np.uint8)
+    write_colmap_scene(tmp_path / "scene", views, points, colors)
+    model = tmp_path / "scene" / "sparse" / "0"
+    for ext in (".bin", ".txt"):  # the same model in each form alone
+        only = tmp_path / f"only{ext}"
+        only.mkdir()
+        for name in ("cameras", "images", "points3D"):
+            (only / f"{name}{ext}").write_bytes((model / f"{name}{ext}").read_bytes())
+        assert read_colmap_model(only).keys() == read_colmap_model(tmp_path / "scene" / "sparse").keys()
+    reconstruction = pycolmap.Reconstruction(str(tmp_path / "only.bin"))  # COLMAP's own reader
+    assert sorted(image.name for image in reconstruction.images.values()) == sorted(f"{v.name}.png" for v in views)
+    np.testing.assert_allclose(sorted(p.xyz.tolist() for p in reconstruction.points3D.values()), points.tolist())
+    assert sorted(p.color.tolist() for p in reconstruction.points3D.values()) == colors.tolist()
+    by_name = {v.name: v for v in views}
+    for image in reconstruction.images.values():
+        view = by_name[image.name[: -len(".png")]]
+        np.testing.assert_allclose(image.cam_from_world().matrix(), view.world_to_camera.double().numpy()[:3], atol=1e-9)
+        fx, fy, cx, cy = reconstruction.cameras[image.camera_id].params
+        np.testing.assert_allclose([fx, fy, cx, cy], view.K.double().numpy()[[0, 1, 0, 1], [0, 1, 2, 2]], atol=1e-9)
 
 
 def test_registry_detects_the_project_format(scene, tmp_path):

@@ -22,7 +22,8 @@ from polargs_plugin.io import PolarInputError, atomic_write
 if TYPE_CHECKING:
     from polargs_plugin.types import View
 
-__all__ = ["ColmapCamera", "read_colmap_model", "write_colmap_text", "find_colmap_model", "write_colmap_scene"]
+__all__ = ["ColmapCamera", "read_colmap_model", "write_colmap_text", "write_colmap_binary", "find_colmap_model",
+           "write_colmap_scene"]
 
 # COLMAP camera models: id -> (name, number of params).
 # The pinhole params are f, cx, cy (1 focal) or fx, fy, cx, cy (2 focals); the rest is distortion.
@@ -154,6 +155,25 @@ def _numbers(values: np.ndarray) -> list[str]:
     return [repr(float(v)) for v in values]  # repr: shortest text that parses back exactly
 
 
+def _model_rows(cameras: dict[str, ColmapCamera], points: np.ndarray | None, colors: np.ndarray | None
+                ) -> tuple[list[tuple[int, np.ndarray, int, int]], list[tuple[int, np.ndarray, np.ndarray, str]],
+                           list[tuple[int, np.ndarray, np.ndarray]]]:
+    """The rows of a COLMAP model, one PINHOLE camera per image: cameras (id, fx fy cx cy, W, H),
+    images (id, qvec, tvec, name; camera id = image id), points (id, xyz, rgb uint8)."""
+    camera_rows, image_rows = [], []
+    for index, (name, camera) in enumerate(cameras.items(), start=1):
+        if abs(camera.K[0, 1]) > 1e-12:
+            raise PolarInputError(name, "COLMAP cameras cannot hold a skewed K")
+        camera_rows.append((index, camera.K[[0, 1, 0, 1], [0, 1, 2, 2]], camera.width, camera.height))  # fx, fy, cx, cy
+        qvec = cam.rotmat_to_qvec(camera.world_to_camera[:3, :3])
+        image_rows.append((index, qvec, camera.world_to_camera[:3, 3], name))
+    point_rows = []
+    if points is not None:
+        rgb = np.full((len(points), 3), 128, dtype=np.uint8) if colors is None else np.asarray(colors, dtype=np.uint8)
+        point_rows = list(zip(range(1, len(points) + 1), np.asarray(points, dtype=np.float64), rgb))
+    return camera_rows, image_rows, point_rows
+
+
 def write_colmap_text(
     model_dir: str | os.PathLike,
     cameras: dict[str, ColmapCamera],
@@ -169,24 +189,47 @@ def write_colmap_text(
         colors: (P, 3) uint8 colours of ``points`` (default mid-grey).
     """
     model_dir = Path(model_dir)
-    camera_lines, image_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], ["# Image list"]
-    for index, (name, camera) in enumerate(cameras.items(), start=1):
-        if abs(camera.K[0, 1]) > 1e-12:
-            raise PolarInputError(name, "COLMAP cameras cannot hold a skewed K")
-        pinhole = camera.K[[0, 1, 0, 1], [0, 1, 2, 2]]  # fx, fy, cx, cy
-        camera_lines.append(" ".join([str(index), "PINHOLE", str(camera.width), str(camera.height), *_numbers(pinhole)]))
-        qvec = cam.rotmat_to_qvec(camera.world_to_camera[:3, :3])
-        tvec = camera.world_to_camera[:3, 3]
-        image_lines.append(" ".join([str(index), *_numbers(qvec), *_numbers(tvec), str(index), name]))
-        image_lines.append("")  # no 2D points
+    camera_rows, image_rows, point_rows = _model_rows(cameras, points, colors)
+    camera_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
+    camera_lines += [" ".join([str(i), "PINHOLE", str(w), str(h), *_numbers(pinhole)]) for i, pinhole, w, h in camera_rows]
+    image_lines = ["# Image list"]
+    for index, qvec, tvec, name in image_rows:
+        image_lines += [" ".join([str(index), *_numbers(qvec), *_numbers(tvec), str(index), name]), ""]  # no 2D points
     point_lines = ["# 3D point list: POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]"]
-    if points is not None:
-        rgb = np.full((len(points), 3), 128, dtype=np.uint8) if colors is None else np.asarray(colors, dtype=np.uint8)
-        for index, (xyz, color) in enumerate(zip(np.asarray(points, dtype=np.float64), rgb), start=1):
-            point_lines.append(" ".join([str(index), *_numbers(xyz), *(str(int(c)) for c in color), "0.0"]))
+    point_lines += [" ".join([str(i), *_numbers(xyz), *(str(int(c)) for c in rgb), "0.0"]) for i, xyz, rgb in point_rows]
     for filename, lines in (("cameras.txt", camera_lines), ("images.txt", image_lines), ("points3D.txt", point_lines)):
         with atomic_write(model_dir / filename) as f:
             f.write("\n".join(lines) + "\n")
+    return model_dir
+
+
+_PINHOLE_ID = 1
+
+
+def write_colmap_binary(
+    model_dir: str | os.PathLike,
+    cameras: dict[str, ColmapCamera],
+    points: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+) -> Path:
+    """:func:`write_colmap_text`'s model in COLMAP's binary form (``cameras.bin``, ``images.bin``,
+    ``points3D.bin``, little-endian, the layout COLMAP writes by default), the form some readers
+    require (gsplat 1.5's COLMAP parser reads only that one)."""
+    model_dir = Path(model_dir)
+    camera_rows, image_rows, point_rows = _model_rows(cameras, points, colors)
+    with atomic_write(model_dir / "cameras.bin", "wb") as f:
+        f.write(struct.pack("<Q", len(camera_rows)))
+        for index, pinhole, width, height in camera_rows:
+            f.write(struct.pack("<iiQQ4d", index, _PINHOLE_ID, width, height, *map(float, pinhole)))
+    with atomic_write(model_dir / "images.bin", "wb") as f:
+        f.write(struct.pack("<Q", len(image_rows)))
+        for index, qvec, tvec, name in image_rows:
+            f.write(struct.pack("<i7di", index, *map(float, qvec), *map(float, tvec), index))
+            f.write(name.encode() + b"\x00" + struct.pack("<Q", 0))  # no 2D points
+    with atomic_write(model_dir / "points3D.bin", "wb") as f:
+        f.write(struct.pack("<Q", len(point_rows)))
+        for index, xyz, rgb in point_rows:
+            f.write(struct.pack("<Q3d3BdQ", index, *map(float, xyz), *map(int, rgb), 0.0, 0))  # error 0, no track
     return model_dir
 
 
@@ -204,8 +247,9 @@ def write_colmap_scene(folder: str | os.PathLike, views: "Sequence[View]", point
     """A scene as an upstream trainer's COLMAP input: ``images/<name>.png`` (the training colour
     s0 / 2 of each view, 8 bits) and the sparse model (PINHOLE cameras, ``points`` as the sparse
     points the trainer initialises from) twice: in ``sparse/0``, where graphdeco, GOF and 2DGS
-    read it, and in ``sparse``, where PGSR does. Image names are the view names, so a patched
-    trainer finds each camera's polarimetric view by name."""
+    read it, and in ``sparse``, where PGSR does, each as text and as binary files (COLMAP's own
+    default, the only form gsplat 1.5's parser reads). Image names are the view names, so a
+    patched trainer finds each camera's polarimetric view by name."""
     from polargs_plugin.data.imageio_utils import write_png
 
     folder = Path(folder)
@@ -218,4 +262,5 @@ def write_colmap_scene(folder: str | os.PathLike, views: "Sequence[View]", point
         )
     for model_dir in (folder / "sparse" / "0", folder / "sparse"):
         write_colmap_text(model_dir, cameras, points, colors)
+        write_colmap_binary(model_dir, cameras, points, colors)
     return folder
