@@ -30,7 +30,7 @@ from torch import Tensor
 
 from polargs_plugin.dryrun.probe import RunProbe
 
-__all__ = ["GsplatProbe", "gsplat_state_problems", "NOT_PER_GAUSSIAN_STATE"]
+__all__ = ["GsplatProbe", "gsplat_state_problems", "named_arguments", "NOT_PER_GAUSSIAN_STATE"]
 
 NOT_PER_GAUSSIAN_STATE = ("binoms", "scene_scale")
 """Strategy-state entries that never hold one row per Gaussian (MCMC's binomial table)."""
@@ -39,6 +39,17 @@ _OPS = {
     "gsplat.strategy.default": ("duplicate", "split", "remove"),
     "gsplat.strategy.mcmc": ("relocate", "sample_add"),
 }
+
+
+def named_arguments(signature: inspect.Signature, args: tuple, kwargs: Mapping[str, Any]) -> dict[str, Any]:
+    """The arguments of a call by parameter name, those caught by a ``**kwargs`` parameter included
+    (gsplat's base ``Strategy.step_pre_backward(*args, **kwargs)``, which MCMCStrategy inherits,
+    receives ``params=``, ``optimizers=``, ``state=`` that way)."""
+    bound = signature.bind(*args, **kwargs).arguments
+    for parameter in signature.parameters.values():
+        if parameter.kind is inspect.Parameter.VAR_KEYWORD:
+            bound.update(bound.pop(parameter.name, {}))
+    return dict(bound)
 
 
 def gsplat_state_problems(params: Mapping[str, Tensor], optimizers: Mapping[str, Any], state: Mapping[str, Any],
@@ -123,7 +134,7 @@ class GsplatProbe(RunProbe):
 
         def step_pre_backward(strategy: Any, *args: Any, **kwargs: Any) -> Any:
             if probe.params is None:
-                bound = signature.bind(strategy, *args, **kwargs).arguments
+                bound = named_arguments(signature, (strategy, *args), kwargs)
                 probe.params, probe.optimizers, probe.state = bound["params"], bound["optimizers"], bound["state"]
                 probe._start_rows(int(probe.params["means"].shape[0]))
             return original(strategy, *args, **kwargs)
@@ -147,7 +158,7 @@ class GsplatProbe(RunProbe):
             signature = inspect.signature(original)
 
             def op(*args: Any, **kwargs: Any) -> Any:
-                bound = signature.bind(*args, **kwargs).arguments
+                bound = named_arguments(signature, args, kwargs)
                 rows = probe.dense_rows
                 result = original(*args, **kwargs)
                 if bound["params"] is probe.params:
