@@ -5,6 +5,8 @@ strategies."""
 from __future__ import annotations
 
 import math
+import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -12,6 +14,11 @@ import torch
 from polargs_plugin.backends.reference.rasterizer import rasterize as reference
 from polargs_plugin.dryrun.standins import fused_ssim as fused
 from polargs_plugin.dryrun.standins import gsplat as standin
+from polargs_plugin.kit.patching import main as patch_main
+from polargs_plugin.service.dryrun import DryRunRequest, describe, dry_run
+
+ROOT = Path(__file__).resolve().parents[1]
+TRAINERS = Path(__file__).resolve().parent / "data" / "trainers"
 
 N, W, H = 120, 40, 30
 
@@ -156,3 +163,47 @@ def test_the_probe_reads_the_strategy_arguments_given_through_kwargs() -> None:
     finally:
         probe.uninstall()
     assert probe.params is params and probe.initial_gaussians == 5 and probe._started()
+
+
+def _gsplat_anchors():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_gsplat_patch", ROOT / "adapters" / "gsplat" / "patch.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.ANCHORS
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("trainer", ["gsplat", "gsplat-mcmc"])
+def test_dry_run_of_the_placeholder_simple_trainer(trainer: str, tmp_path: Path) -> None:
+    pytest.importorskip("gsplat")
+    pytest.importorskip("tqdm")
+    checkout = tmp_path / "examples"
+    shutil.copytree(TRAINERS / "gsplat_support", checkout, ignore=shutil.ignore_patterns("README.md"))
+    shutil.copy(TRAINERS / "gsplat_dryrun_simple_trainer.py", checkout / "simple_trainer.py")
+    assert patch_main([str(checkout)], _gsplat_anchors(), "test", filename="simple_trainer.py") == 0
+    before = sorted(p.name for p in checkout.rglob("*") if "__pycache__" not in p.parts)
+    # the unpatched run (the same script, PolarGS lines stripped) once, with DefaultStrategy
+    request = DryRunRequest(checkout=checkout, trainer=trainer, workdir=tmp_path / "work", iterations=64, interval=8,
+                            views=16, width=32, height=24, compare=trainer == "gsplat")
+    result = dry_run(request)
+    assert result.ok, "\n".join(describe(result.checks)) + "\n" + result.logs["patched"].read_text()[-3000:]
+    names = {c.name for c in result.checks}
+    assert {"finished (patched)", "Dense appended and survived (patched)", "checkpoint (patched)"} <= names
+    after = sorted(p.name for p in checkout.rglob("*") if "__pycache__" not in p.parts)
+    assert after == before  # nothing written into the checkout
+
+
+def test_dense_rows_follow_gsplat_s_ops() -> None:
+    from polargs_plugin.dryrun.probe_gsplat import _rows_after
+
+    rows = torch.tensor([True, False, True, True])
+    mask = torch.tensor([True, True, False, False])
+    # duplicate appends copies (not Dense's); split drops the parents and appends two children each
+    assert _rows_after("duplicate", rows, {"mask": mask}).tolist() == [True, False, True, True, False, False]
+    assert _rows_after("split", rows, {"mask": mask}).tolist() == [True, True, False, False, False, False]
+    assert _rows_after("remove", rows, {"mask": mask}).tolist() == [True, True]
+    # relocation overwrites the masked rows in place; sample_add appends n new ones
+    assert _rows_after("relocate", rows, {"mask": mask}).tolist() == [False, False, True, True]
+    assert _rows_after("sample_add", rows, {"n": 2}).tolist() == [True, False, True, True, False, False]
