@@ -138,7 +138,7 @@ def rasterization(
     eps2d: float = 0.3,
     sh_degree: Optional[int] = None,
     packed: bool = True,
-    tile_size: int = 16,
+    tile_size: Optional[int] = 16,
     backgrounds: Optional[Tensor] = None,
     render_mode: str = "RGB",
     absgrad: bool = False,
@@ -154,6 +154,9 @@ def rasterization(
         ValueError: shapes that do not match, an unknown ``render_mode``.
     """
     _refuse_unsupported(packed, camera_model, options)
+    if rasterize_mode not in ("classic", "antialiased"):
+        raise ValueError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+    tile_size = tile_size or 16  # gsplat main's default is None (its own choice); 16 is 1.5's
     if render_mode not in _RENDER_MODES:
         raise ValueError(f"render_mode must be one of {', '.join(_RENDER_MODES)}, got {render_mode!r}")
     if means.dim() != 2 or viewmats.dim() != 3 or Ks.dim() != 3:
