@@ -295,8 +295,10 @@ def splat(
         scales: (N, 3) scales, already multiplied by any ``scale_modifier``.
         opacities: (N,) opacities.
         features: (N, C) per-Gaussian columns to composite (colours, PGSR's all-map ...).
-        K, world_to_camera: the camera (:func:`camera_from_upstream`).
-        width, height: image size.
+        K: (3, 3) intrinsics of the camera (:func:`camera_from_upstream`).
+        world_to_camera: (4, 4) its world-to-camera transform.
+        width: image width in pixels.
+        height: image height in pixels.
         screen: the trainer's zero screen-space tensor (N, >=2); its ``.grad[:, :2]`` becomes
             dL/d(projected mean) in NDC units.
         screen_abs: (N, 1) or (N, 2) view of a zero tensor that receives the absolute gradient.
