@@ -17,7 +17,6 @@ colour terms act on the trainer's own render, as its photometric loss does).
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, Callable, Dict, List, Sequence
 
 import torch

@@ -14,6 +14,8 @@ _EPILOG = """examples:
   python adapters/gof/patch.py ~/src/gaussian-opacity-fields
   polargs dryrun ~/src/gaussian-opacity-fields --trainer gof
   polargs dryrun ~/src/PGSR --trainer pgsr --iters 600 --workdir out/dryrun-pgsr
+  python adapters/gsplat/patch.py ~/src/gsplat/examples
+  polargs dryrun ~/src/gsplat/examples --trainer gsplat-mcmc
 
 The trainer's CUDA extensions are replaced by CPU stand-ins and its CUDA requests go to the CPU,
 in the dry run's own processes only: nothing is written into the checkout. The trainer reads a

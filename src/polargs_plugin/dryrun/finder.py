@@ -4,6 +4,9 @@
 diff_gaussian_rasterization`` (or ``from simple_knn._C import distCUDA2``) gets the stand-in module
 named in its table, whatever is installed, and nothing is written anywhere. A name whose
 sub-modules are also in the table is given a ``__path__`` so that ``import a.b`` works.
+
+:func:`install_attributes` replaces single attributes of installed packages (gsplat's
+``rasterization``), in the process's imported modules only.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import sys
 from types import ModuleType
 from typing import Mapping, Sequence
 
-__all__ = ["StandinFinder", "install_standins"]
+__all__ = ["StandinFinder", "install_standins", "install_attributes"]
 
 
 class _AliasLoader(importlib.abc.Loader):
@@ -58,3 +61,20 @@ def install_standins(table: Mapping[str, str]) -> StandinFinder:
     finder = StandinFinder(table)
     sys.meta_path.insert(0, finder)
     return finder
+
+
+def _resolve(path: str) -> tuple[ModuleType, str]:
+    module, _, attribute = path.partition(":")
+    return importlib.import_module(module), attribute
+
+
+def install_attributes(table: Mapping[str, str]) -> list[tuple[ModuleType, str, object]]:
+    """Replace ``"module:attribute"`` by the stand-in ``"module:attribute"`` of ``table`` (importing
+    both); returns ``(module, attribute, original)`` per replacement, to undo it."""
+    undo = []
+    for upstream, standin in table.items():
+        module, attribute = _resolve(upstream)
+        owner, name = _resolve(standin)
+        undo.append((module, attribute, getattr(module, attribute)))
+        setattr(module, attribute, getattr(owner, name))
+    return undo

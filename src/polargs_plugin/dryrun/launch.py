@@ -2,9 +2,11 @@
 --checkout DIR --script FILE --report FILE [--model-path DIR] -- <train.py arguments>``.
 
 It maps CUDA to the CPU (:mod:`.cuda_cpu`), serves the trainer's CUDA extensions from the
-stand-ins (:mod:`.finder`), puts the checkout first on ``sys.path``, installs the :class:`.probe.Probe`
-on the checkout's ``GaussianModel``, runs ``FILE`` as ``__main__`` with the given arguments, checks
-the checkpoint and writes the probe's report (JSON) to ``--report``. Exit status 0 when the
+stand-ins (:mod:`.finder`; for gsplat also single attributes of the installed package), puts the
+checkout first on ``sys.path``, installs the probe (:class:`.probe.Probe` on the checkout's
+``GaussianModel``, or :class:`.probe_gsplat.GsplatProbe` on gsplat's strategies), runs ``FILE`` as
+``__main__`` with the given arguments, checks the checkpoint and writes the probe's report (JSON)
+to ``--report``. Exit status 0 when the
 script returned, 1 when it failed (the report says where). ``polargs dryrun`` starts it; it is not
 meant to be run by hand, though it can be.
 """
@@ -13,15 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import runpy
 import sys
 from pathlib import Path
 from typing import Sequence
 
 from polargs_plugin.dryrun import cuda_cpu
-from polargs_plugin.dryrun.finder import install_standins
-from polargs_plugin.dryrun.probe import Probe, describe_error, import_model_class
+from polargs_plugin.dryrun.finder import install_attributes, install_standins
+from polargs_plugin.dryrun.probe import Probe, RunProbe, describe_error
 from polargs_plugin.dryrun.trainers import TRAINERS
 from polargs_plugin.io import atomic_write
 
@@ -39,22 +40,32 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _probe(family: str, model_path: Path | None) -> RunProbe:
+    if family == "gsplat":
+        from polargs_plugin.dryrun.probe_gsplat import GsplatProbe
+
+        return GsplatProbe(model_path)
+    return Probe(model_path)
+
+
 def run(trainer: str, checkout: Path, script: Path, model_path: Path | None, arguments: Sequence[str]) -> dict:
     """Run ``script`` with everything installed; returns the report (also when it failed)."""
+    spec = TRAINERS[trainer]
     cuda_cpu.install()
-    install_standins(TRAINERS[trainer].standins)
+    install_standins(spec.standins)
     sys.path.insert(0, str(checkout.resolve()))
-    probe = Probe(model_path)
     finished = False
+    probe = _probe(spec.family, model_path)
     try:
-        probe.install(import_model_class())
+        install_attributes(spec.attributes)
+        probe.install()
         sys.argv = [str(script), *arguments]
         runpy.run_path(str(script), run_name="__main__")
         finished = True
     except SystemExit as exit_:
         finished = exit_.code in (None, 0)
         if not finished:
-            probe.error = f"train.py exited with status {exit_.code}"
+            probe.error = f"{script.name} exited with status {exit_.code}"
     except BaseException as err:  # the report carries the failure; the exit status says it too
         probe.error = describe_error(err)
     probe.finish()

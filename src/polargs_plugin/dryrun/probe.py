@@ -1,6 +1,7 @@
 """What a dry run watches inside a graphdeco-family trainer (graphdeco, GOF, PGSR, 2DGS).
 
-:class:`Probe` wraps, in the trainer's process only, a few methods at class level:
+:class:`RunProbe` is what every probe records and reports (gsplat's is
+:class:`polargs_plugin.dryrun.probe_gsplat.GsplatProbe`); :class:`Probe` wraps, in the trainer's process only, a few methods at class level:
 
 - ``Tensor.backward``: one call per training iteration; it counts iterations, records the loss
   value and the time between iterations, and checks the model's per-Gaussian state first (so the
@@ -31,7 +32,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-__all__ = ["PER_GAUSSIAN", "GAUSSIAN_GROUPS", "Probe", "state_problems", "load_checkpoint", "import_model_class", "describe_error"]
+__all__ = ["PER_GAUSSIAN", "GAUSSIAN_GROUPS", "RunProbe", "Probe", "state_problems", "load_checkpoint", "import_model_class", "describe_error"]
 
 PER_GAUSSIAN = (
     "_xyz", "_features_dc", "_features_rest", "_scaling", "_rotation", "_opacity", "_knn_f",
@@ -89,16 +90,17 @@ def load_checkpoint(path: Path) -> Any:
         return torch.load(path, weights_only=True, map_location="cpu")
 
 
-class Probe:
-    """Records a dry run inside the trainer's process (module docstring); :meth:`report` is the JSON."""
+class RunProbe:
+    """What every dry-run probe records inside the trainer's process (losses, step times,
+    per-Gaussian state problems, native densification, Dense's rows); :meth:`report` is the JSON.
+
+    A subclass knows its trainer family: :meth:`install` wraps what it watches, :meth:`_started`
+    says whether training has begun, :meth:`_num_gaussians` and :meth:`_state_problems` read its
+    model, :meth:`_patched` whether the PolarGS adapter was attached.
+    """
 
     def __init__(self, model_path: Path | None) -> None:
         self.model_path = model_path
-        self.model: Any = None
-        self.model_args: tuple[tuple, dict] = ((), {})
-        self.training_args: Any = None
-        self.adapters: list[Any] = []
-        self.statistics: tuple[str, ...] = PER_GAUSSIAN
         self.iteration = 0
         self.losses: list[float] = []
         self.times: list[float] = []
@@ -109,7 +111,6 @@ class Probe:
         self.rows_lost: str | None = None
         self.initial_gaussians: int | None = None
         self.error: str | None = None
-        self._in_dense = False
         self._restores: list[tuple[Any, str, Any]] = []
 
     # ------------------------------------------------------------------ installing
@@ -120,18 +121,9 @@ class Probe:
         # whether densification_postfix takes graphdeco 2024's new_tmp_radii)
         setattr(owner, name, functools.wraps(original)(make(original)))
 
-    def install(self, model_class: Any) -> None:
-        """Wrap ``Tensor.backward``, the checkout's ``GaussianModel`` and ``InriaAdapter``."""
-        from polargs_plugin.kit.inria import InriaAdapter
-
+    def install(self) -> None:
+        """Wrap what the probe watches (``Tensor.backward`` here; subclasses add their trainer's)."""
         self._wrap(torch.Tensor, "backward", self._backward)
-        self._wrap(model_class, "__init__", self._model_init)
-        self._wrap(model_class, "training_setup", self._training_setup)
-        self._wrap(model_class, "densification_postfix", self._postfix)
-        self._wrap(model_class, "prune_points", self._prune)
-        self._wrap(model_class, "densify_and_prune", self._densify_and_prune)
-        self._wrap(InriaAdapter, "__init__", self._adapter_init)
-        self._wrap(InriaAdapter, "append", self._append)
 
     def uninstall(self) -> None:
         """Undo :meth:`install`."""
@@ -139,12 +131,29 @@ class Probe:
             owner, name, original = self._restores.pop()
             setattr(owner, name, original)
 
+    # ------------------------------------------------------------------ per family
+    def _started(self) -> bool:
+        raise NotImplementedError
+
+    def _num_gaussians(self) -> int | None:
+        raise NotImplementedError
+
+    def _state_problems(self) -> list[str]:
+        raise NotImplementedError
+
+    def _patched(self) -> bool:
+        raise NotImplementedError
+
+    def checkpoint(self) -> dict:
+        """``{"ok": bool, "detail": str}`` of the trainer's newest checkpoint, reloaded."""
+        raise NotImplementedError
+
     # ------------------------------------------------------------------- wrappers
     def _backward(self, original: Callable[..., Any]) -> Callable[..., Any]:
         probe = self
 
         def backward(tensor: Tensor, *args: Any, **kwargs: Any) -> Any:
-            if tensor.dim() == 0 and probe.model is not None:
+            if tensor.dim() == 0 and probe._started():
                 probe._iteration_starts(float(tensor.detach()))
             return original(tensor, *args, **kwargs)
 
@@ -156,6 +165,97 @@ class Probe:
         self.times.append(time.perf_counter())
         self._check(f"iteration {self.iteration}")
 
+    def _start_rows(self, count: int) -> None:
+        """Training starts with ``count`` Gaussians, none of them Dense's."""
+        self.initial_gaussians = count
+        self.dense_rows = torch.zeros(count, dtype=torch.bool)
+
+    def _rows_changed(self, rows: Tensor, what: str) -> None:
+        """Dense's rows after an operation on the Gaussians: ``rows`` (one flag per Gaussian), or
+        lost track when their number differs from the model's."""
+        if self.dense_rows is None:
+            return
+        if rows.shape[0] == self._num_gaussians():
+            self.dense_rows = rows
+        else:
+            self._lose_rows(f"{what} at iteration {self.iteration}: {rows.shape[0]} rows for {self._num_gaussians()} Gaussians")
+
+    def _lose_rows(self, why: str) -> None:
+        self.rows_lost = why
+        self.dense_rows = None
+
+    # ------------------------------------------------------------------- checking
+    def _check(self, when: str) -> None:
+        if len(self.problems) >= MAX_PROBLEMS or not self._started():
+            return
+        self.problems.extend(f"{when}: {p}" for p in self._state_problems())
+
+    def finish(self) -> None:
+        """The checks after the run: the state once more."""
+        self._check("at the end")
+
+    def report(self) -> dict:
+        """The JSON report of the run."""
+        steps = [b - a for a, b in zip(self.times, self.times[1:])]
+        return {
+            "iterations": self.iteration,
+            "error": self.error,
+            "losses_finite": all(math.isfinite(x) for x in self.losses),
+            "first_nonfinite": next((i + 1 for i, x in enumerate(self.losses) if not math.isfinite(x)), None),
+            "loss_first": self.losses[0] if self.losses else None,
+            "loss_last": self.losses[-1] if self.losses else None,
+            "step_seconds": steps,
+            "gaussians_initial": self.initial_gaussians,
+            "gaussians_final": self._num_gaussians(),
+            "native_densify": self.native_densify,
+            "dense_rounds": self.dense_rounds,
+            "dense_rows_final": None if self.dense_rows is None else int(self.dense_rows.sum()),
+            "rows_lost": self.rows_lost,
+            "problems": self.problems,
+            "patched": self._patched(),
+        }
+
+
+class Probe(RunProbe):
+    """The probe of the graphdeco family (module docstring)."""
+
+    def __init__(self, model_path: Path | None) -> None:
+        super().__init__(model_path)
+        self.model: Any = None
+        self.model_args: tuple[tuple, dict] = ((), {})
+        self.training_args: Any = None
+        self.adapters: list[Any] = []
+        self.statistics: tuple[str, ...] = PER_GAUSSIAN
+        self._in_dense = False
+
+    def install(self, model_class: Any = None) -> None:
+        """Wrap ``Tensor.backward``, the checkout's ``GaussianModel`` (``model_class``, default
+        :func:`import_model_class`) and ``InriaAdapter``."""
+        from polargs_plugin.kit.inria import InriaAdapter
+
+        model_class = model_class or import_model_class()
+        super().install()
+        self._wrap(model_class, "__init__", self._model_init)
+        self._wrap(model_class, "training_setup", self._training_setup)
+        self._wrap(model_class, "densification_postfix", self._postfix)
+        self._wrap(model_class, "prune_points", self._prune)
+        self._wrap(model_class, "densify_and_prune", self._densify_and_prune)
+        self._wrap(InriaAdapter, "__init__", self._adapter_init)
+        self._wrap(InriaAdapter, "append", self._append)
+
+    def _started(self) -> bool:
+        return self.model is not None and getattr(self.model, "optimizer", None) is not None
+
+    def _num_gaussians(self) -> int | None:
+        return None if self.model is None else int(self.model._xyz.shape[0])
+
+    def _state_problems(self) -> list[str]:
+        return state_problems(self.model, self.statistics)
+
+    def _patched(self) -> bool:
+        return bool(self.adapters)
+
+    # ------------------------------------------------------------------- wrappers
     def _model_init(self, original: Callable[..., Any]) -> Callable[..., Any]:
         probe = self
 
@@ -173,8 +273,7 @@ class Probe:
             result = original(model, training_args, *args, **kwargs)
             if model is probe.model and probe.training_args is None:
                 probe.training_args = training_args
-                probe.initial_gaussians = int(model._xyz.shape[0])
-                probe.dense_rows = torch.zeros(probe.initial_gaussians, dtype=torch.bool)
+                probe._start_rows(int(model._xyz.shape[0]))
             return result
 
         return training_setup
@@ -199,11 +298,10 @@ class Probe:
             result = original(model, mask, *args, **kwargs)
             if model is probe.model and probe.dense_rows is not None:
                 keep = ~mask.detach().cpu().bool().reshape(-1)
-                if keep.shape[0] == probe.dense_rows.shape[0] and int(keep.sum()) == int(model._xyz.shape[0]):
-                    probe.dense_rows = probe.dense_rows[keep]
+                if keep.shape[0] == probe.dense_rows.shape[0]:
+                    probe._rows_changed(probe.dense_rows[keep], "prune_points")
                 else:
-                    probe.rows_lost = f"prune_points at iteration {probe.iteration}: mask of {keep.shape[0]} rows"
-                    probe.dense_rows = None
+                    probe._lose_rows(f"prune_points at iteration {probe.iteration}: mask of {keep.shape[0]} rows")
             return result
 
         return prune_points
@@ -244,16 +342,6 @@ class Probe:
 
         return append
 
-    # ------------------------------------------------------------------- checking
-    def _check(self, when: str) -> None:
-        if self.model is None or getattr(self.model, "optimizer", None) is None or len(self.problems) >= MAX_PROBLEMS:
-            return
-        self.problems.extend(f"{when}: {p}" for p in state_problems(self.model, self.statistics))
-
-    def finish(self) -> None:
-        """The checks after the run: the state once more."""
-        self._check("at the end")
-
     def checkpoint(self) -> dict:
         """The newest ``chkpnt*.pth`` of the model folder, loaded and restored into a new model."""
         if self.model_path is None or self.model is None:
@@ -272,28 +360,6 @@ class Probe:
         n = int(fresh._xyz.shape[0])
         detail = f"{path.name} (iteration {iteration}) restored into a new model: {n} Gaussians"
         return {"ok": not problems, "detail": detail + ("; " + "; ".join(problems) if problems else "")}
-
-    def report(self) -> dict:
-        """The JSON report of the run."""
-        steps = [b - a for a, b in zip(self.times, self.times[1:])]
-        final = None if self.model is None else int(self.model._xyz.shape[0])
-        return {
-            "iterations": self.iteration,
-            "error": self.error,
-            "losses_finite": all(math.isfinite(x) for x in self.losses),
-            "first_nonfinite": next((i + 1 for i, x in enumerate(self.losses) if not math.isfinite(x)), None),
-            "loss_first": self.losses[0] if self.losses else None,
-            "loss_last": self.losses[-1] if self.losses else None,
-            "step_seconds": steps,
-            "gaussians_initial": self.initial_gaussians,
-            "gaussians_final": final,
-            "native_densify": self.native_densify,
-            "dense_rounds": self.dense_rounds,
-            "dense_rows_final": None if self.dense_rows is None else int(self.dense_rows.sum()),
-            "rows_lost": self.rows_lost,
-            "problems": self.problems,
-            "patched": bool(self.adapters),
-        }
 
 
 def import_model_class(module: str = "scene.gaussian_model", name: str = "GaussianModel") -> Any:

@@ -34,7 +34,7 @@ from polargs_plugin.backends.reference.composite_torch import (
 )
 from polargs_plugin.backends.reference.projection import Projection, project_gaussians
 
-__all__ = ["NEAR_PLANE", "FAR_PLANE", "SplatOut", "splat", "camera_from_upstream", "compensation", "upstream_radii"]
+__all__ = ["NEAR_PLANE", "FAR_PLANE", "SplatOut", "Projected", "project_splats", "composite_splats", "splat", "camera_from_upstream", "compensation", "upstream_radii"]
 
 NEAR_PLANE = 0.2
 """Camera z below which the upstream rasterizers cull a Gaussian (``in_frustum``: z <= 0.2)."""
@@ -169,6 +169,105 @@ def _distortion(depth: Tensor, weight: Tensor, trans: Tensor, pix: Tensor, num_p
     return out.to(depth.dtype)
 
 
+@dataclass
+class Projected:
+    """N Gaussians projected into one camera, ready for :func:`composite_splats`.
+
+    Attributes:
+        proj: the reference backend's projection, its ``means2d`` (N, 2) in pixels already
+            carrying the trainer's screen-space tensor (its gradient flows through it).
+        opacities: (N,) opacities, times the Mip-Splatting factor when compensated.
+        in_range: (N,) bool, camera z at or beyond the near plane (and before the far plane).
+        factors: (2,) NDC factors (W/2, H/2) of this image.
+    """
+
+    proj: Projection
+    opacities: Tensor
+    in_range: Tensor
+    factors: Tensor
+
+
+def project_splats(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    K: Tensor,
+    world_to_camera: Tensor,
+    width: int,
+    height: int,
+    *,
+    screen: Tensor | None = None,
+    eps2d: float = 0.3,
+    compensate: bool = False,
+    near: float = NEAR_PLANE,
+    far: float = 1e10,
+) -> Projected:
+    """The projection half of :func:`splat` (its arguments; ``near`` / ``far`` the culling planes)."""
+    w2c = world_to_camera.to(means)
+    K = K.to(means)
+    proj = project_gaussians(means, quats, scales, opacities, K, w2c, width, height, near, far, eps2d)
+    z = means @ w2c[2, :3] + w2c[2, 3]
+    in_range = (z >= near) & (z < far)
+    factors = torch.tensor([width / 2.0, height / 2.0], dtype=means.dtype, device=means.device)
+    means2d = proj.means2d if screen is None else proj.means2d + screen[:, :2] * factors
+    proj = proj._replace(means2d=means2d)
+    opac = opacities * compensation(proj.conics, eps2d) if compensate else opacities
+    return Projected(proj=proj, opacities=opac, in_range=in_range, factors=factors)
+
+
+def composite_splats(
+    projected: Projected,
+    features: Tensor,
+    width: int,
+    height: int,
+    *,
+    screen_abs: Tensor | None = None,
+    normalize_distortion: bool = False,
+    tile_size: int = 16,
+) -> SplatOut:
+    """The compositing half of :func:`splat`: ``features`` (N, C) and the extras, front to back."""
+    proj, opac, factors = projected.proj, projected.opacities, projected.factors
+    means2d = proj.means2d
+    num_gaussians, dtype, device = means2d.shape[0], means2d.dtype, means2d.device
+    bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
+    pix, g = contributing_pairs(proj, opac.detach(), bins, width, height)
+
+    num_pix = width * height
+    px = (pix % width).to(dtype) + 0.5
+    py = torch.div(pix, width, rounding_mode="floor").to(dtype) + 0.5
+    pair_means = means2d[g]
+    if screen_abs is not None:
+        pair_means = pair_means + _AbsoluteGradient.apply(screen_abs, g, factors)
+    alpha = gaussian_alpha(pair_means, proj.conics[g], opac[g], px, py)
+    trans = exclusive_transmittance(alpha, pix)
+    weight = (alpha * trans).to(dtype)
+    depth = pixel_depth(proj.ray_coeffs[g], proj.ray_offsets[g], proj.depth_bounds[g], px, py)
+
+    columns = [features[g], torch.ones_like(depth)[:, None], proj.normals[g], depth[:, None], 1.0 / proj.depths[g][:, None]]
+    values = torch.cat(columns, dim=-1)
+    sums = torch.zeros(num_pix, values.shape[1], dtype=dtype, device=device).index_add(0, pix, weight[:, None] * values)
+    image = sums.T.reshape(values.shape[1], height, width)
+    c = features.shape[1]
+    alpha_image = image[c : c + 1]
+    distortion = _distortion(depth, weight, trans, pix, num_pix).reshape(1, height, width)
+    if normalize_distortion:
+        distortion = distortion / (alpha_image * alpha_image + 1e-7)
+    with torch.no_grad():
+        observe = torch.bincount(g[trans > 0.5], minlength=num_gaussians).to(torch.int32)
+    return SplatOut(
+        features=image[:c],
+        alpha=alpha_image,
+        normal=image[c + 1 : c + 4],
+        depth=image[c + 4 : c + 5],
+        inverse_depth=image[c + 5 : c + 6],
+        median_depth=_median_depth(depth, trans, pix, num_pix).reshape(1, height, width),
+        distortion=distortion,
+        observe=observe,
+        radii=upstream_radii(proj, projected.in_range, width, height),
+    )
+
+
 def splat(
     means: Tensor,
     quats: Tensor,
@@ -187,7 +286,8 @@ def splat(
     normalize_distortion: bool = False,
     tile_size: int = 16,
 ) -> SplatOut:
-    """Composite N Gaussians into one image with the upstream extras (module docstring).
+    """Composite N Gaussians into one image with the upstream extras (module docstring):
+    :func:`project_splats`, then :func:`composite_splats`.
 
     Args:
         means: (N, 3) world positions.
@@ -196,7 +296,7 @@ def splat(
         opacities: (N,) opacities.
         features: (N, C) per-Gaussian columns to composite (colours, PGSR's all-map ...).
         K: (3, 3) intrinsics of the camera (:func:`camera_from_upstream`).
-        world_to_camera: (4, 4) extrinsics of the same camera.
+        world_to_camera: (4, 4) its world-to-camera transform.
         width: image width in pixels.
         height: image height in pixels.
         screen: the trainer's zero screen-space tensor (N, >=2); its ``.grad[:, :2]`` becomes
@@ -207,50 +307,7 @@ def splat(
         normalize_distortion: divide the distortion by alpha^2 + 1e-7 (GOF).
         tile_size: binning tile edge.
     """
-    w2c = world_to_camera.to(means)
-    K = K.to(means)
-    proj = project_gaussians(means, quats, scales, opacities, K, w2c, width, height, NEAR_PLANE, 1e10, eps2d)
-    z = means @ w2c[2, :3] + w2c[2, 3]
-    in_range = z >= NEAR_PLANE
-    factors = torch.tensor([width / 2.0, height / 2.0], dtype=means.dtype, device=means.device)
-    means2d = proj.means2d if screen is None else proj.means2d + screen[:, :2] * factors
-    proj = proj._replace(means2d=means2d)
-    opac = opacities * compensation(proj.conics, eps2d) if compensate else opacities
-    bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
-    pix, g = contributing_pairs(proj, opac.detach(), bins, width, height)
-
-    num_pix = width * height
-    px = (pix % width).to(means.dtype) + 0.5
-    py = torch.div(pix, width, rounding_mode="floor").to(means.dtype) + 0.5
-    pair_means = means2d[g]
-    if screen_abs is not None:
-        pair_means = pair_means + _AbsoluteGradient.apply(screen_abs, g, factors)
-    alpha = gaussian_alpha(pair_means, proj.conics[g], opac[g], px, py)
-    trans = exclusive_transmittance(alpha, pix)
-    weight = (alpha * trans).to(means.dtype)
-    depth = pixel_depth(proj.ray_coeffs[g], proj.ray_offsets[g], proj.depth_bounds[g], px, py)
-
-    columns = [features[g], torch.ones_like(depth)[:, None], proj.normals[g], depth[:, None], 1.0 / proj.depths[g][:, None]]
-    values = torch.cat(columns, dim=-1)
-    sums = torch.zeros(num_pix, values.shape[1], dtype=means.dtype, device=means.device).index_add(
-        0, pix, weight[:, None] * values
-    )
-    image = sums.T.reshape(values.shape[1], height, width)
-    c = features.shape[1]
-    alpha_image = image[c : c + 1]
-    distortion = _distortion(depth, weight, trans, pix, num_pix).reshape(1, height, width)
-    if normalize_distortion:
-        distortion = distortion / (alpha_image * alpha_image + 1e-7)
-    with torch.no_grad():
-        observe = torch.bincount(g[trans > 0.5], minlength=means.shape[0]).to(torch.int32)
-    return SplatOut(
-        features=image[:c],
-        alpha=alpha_image,
-        normal=image[c + 1 : c + 4],
-        depth=image[c + 4 : c + 5],
-        inverse_depth=image[c + 5 : c + 6],
-        median_depth=_median_depth(depth, trans, pix, num_pix).reshape(1, height, width),
-        distortion=distortion,
-        observe=observe,
-        radii=upstream_radii(proj, in_range, width, height),
-    )
+    projected = project_splats(means, quats, scales, opacities, K, world_to_camera, width, height, screen=screen,
+                               eps2d=eps2d, compensate=compensate)
+    return composite_splats(projected, features, width, height, screen_abs=screen_abs,
+                            normalize_distortion=normalize_distortion, tile_size=tile_size)

@@ -1,20 +1,37 @@
 """The trainers a dry run knows: which stand-ins each imports and how its schedule is shrunk.
 
 Each :class:`TrainerSpec` names the upstream module names the trainer imports (served by the
-stand-ins), the command-line arguments of its ``train.py`` that shrink its schedule so that, within
-a few hundred iterations, its own densification and pruning run several times, and the Dense window
-of the PolarGS settings (``POLARGS_CONFIG``) that overlaps it.
+stand-ins), the attributes of installed packages replaced by stand-ins (gsplat's CUDA entry
+points), the command-line arguments of its training script that shrink its schedule so that,
+within a few hundred iterations, its own densification and pruning run several times, and the
+Dense window of the PolarGS settings (``POLARGS_CONFIG``) that overlaps it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
 
-__all__ = ["TrainerSpec", "TRAINERS", "schedule_arguments", "dense_settings", "STANDINS"]
+__all__ = ["TrainerSpec", "TRAINERS", "schedule_arguments", "gsplat_arguments", "trainer_arguments", "dense_settings",
+           "STANDINS"]
 
 STANDINS = "polargs_plugin.dryrun.standins"
 
 _KNN = {"simple_knn": f"{STANDINS}.simple_knn", "simple_knn._C": f"{STANDINS}.simple_knn"}
+
+_GSPLAT_MODULES = {
+    "gsplat.cuda._backend": f"{STANDINS}.gsplat_backend",
+    "fused_ssim": f"{STANDINS}.fused_ssim",
+    "torchmetrics.image.lpip": f"{STANDINS}.lpips",
+}
+_GSPLAT_ATTRIBUTES = {
+    "gsplat.rendering:rasterization": f"{STANDINS}.gsplat:rasterization",
+    "gsplat:rasterization": f"{STANDINS}.gsplat:rasterization",
+    "gsplat.distributed:cli": f"{STANDINS}.gsplat:single_process_cli",
+    "gsplat.strategy.ops:compute_relocation": f"{STANDINS}.gsplat:compute_relocation",
+    "gsplat.strategy.ops:quat_scale_to_covar_preci": f"{STANDINS}.gsplat:quat_scale_to_covar_preci",
+}
 
 
 @dataclass(frozen=True)
@@ -29,6 +46,13 @@ class TrainerSpec:
         extra_arguments: ``train.py`` arguments beyond the shared schedule (trainer-only switches).
         from_middle: ``train.py`` options naming the iteration a trainer's own geometry terms start
             at; a dry run sets them to the middle of the run so that those terms run too.
+        family: ``"inria"`` (graphdeco's ``train.py`` and its forks: ``GaussianModel``,
+            ``-s``/``-m``) or ``"gsplat"`` (gsplat's ``examples/simple_trainer.py``: a ``Runner``,
+            tyro arguments, gsplat strategies).
+        script: the training script, relative to the checkout.
+        attributes: ``"module:attribute"`` of an installed package -> ``"stand-in module:attribute"``
+            that replaces it in the dry run's process.
+        subcommand: the script's first argument (simple_trainer's strategy preset).
     """
 
     name: str
@@ -37,6 +61,10 @@ class TrainerSpec:
     adapter: str
     extra_arguments: tuple[str, ...] = field(default=())
     from_middle: tuple[str, ...] = field(default=())
+    family: Literal["inria", "gsplat"] = "inria"
+    script: str = "train.py"
+    attributes: dict[str, str] = field(default_factory=dict)
+    subcommand: tuple[str, ...] = field(default=())
 
 
 TRAINERS: dict[str, TrainerSpec] = {
@@ -75,6 +103,18 @@ TRAINERS: dict[str, TrainerSpec] = {
             {"diff_surfel_rasterization": f"{STANDINS}.surfel", **_KNN},
             "twodgs",
         ),
+        TrainerSpec(
+            "gsplat",
+            "nerfstudio-project/gsplat examples/simple_trainer.py, DefaultStrategy (v1.5.3 and main 90d7b4b)",
+            _GSPLAT_MODULES, "gsplat", ("--disable_viewer", "--data_factor", "1"), family="gsplat",
+            script="simple_trainer.py", attributes=_GSPLAT_ATTRIBUTES, subcommand=("default",),
+        ),
+        TrainerSpec(
+            "gsplat-mcmc",
+            "nerfstudio-project/gsplat examples/simple_trainer.py, MCMCStrategy (v1.5.3 and main 90d7b4b)",
+            _GSPLAT_MODULES, "gsplat", ("--disable_viewer", "--data_factor", "1"), family="gsplat",
+            script="simple_trainer.py", attributes=_GSPLAT_ATTRIBUTES, subcommand=("mcmc",),
+        ),
     )
 }
 
@@ -99,6 +139,41 @@ def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> lis
         *spec.extra_arguments,
         *[item for flag in spec.from_middle for item in (flag, str(iterations // 2))],
     ]
+
+
+def gsplat_arguments(spec: TrainerSpec, iterations: int, interval: int) -> list[str]:
+    """simple_trainer.py arguments (tyro) that shrink its schedule to ``iterations`` steps: the
+    strategy's refinement every ``interval`` steps from ``interval`` to 80 % of the run (the
+    DefaultStrategy's opacity reset right after it), a checkpoint one interval before the end (and
+    simple_trainer's own at the last step), no evaluation, no viewer."""
+    refine_until = max(2 * interval, int(0.8 * iterations))
+    strategy = [
+        "--strategy.refine-start-iter", str(interval),
+        "--strategy.refine-stop-iter", str(refine_until),
+        "--strategy.refine-every", str(interval),
+    ]
+    if spec.subcommand == ("default",):
+        strategy += ["--strategy.reset-every", str(refine_until - 1)]
+    return [
+        *spec.subcommand,
+        "--max_steps", str(iterations),
+        "--eval_steps", str(iterations + 1),
+        "--save_steps", str(iterations - interval),
+        "--ply_steps", str(iterations + 1),
+        *strategy,
+        *spec.extra_arguments,
+    ]
+
+
+def trainer_arguments(spec: TrainerSpec, scene_input: Path, model_path: Path, port: int, iterations: int,
+                      interval: int) -> list[str]:
+    """The whole command line of the trainer's script: its input scene (COLMAP layout), its output
+    folder, a free port for its viewer, then the shrunk schedule."""
+    if spec.family == "gsplat":
+        return [*gsplat_arguments(spec, iterations, interval), "--data_dir", str(scene_input),
+                "--result_dir", str(model_path), "--port", str(port)]
+    return ["-s", str(scene_input), "-m", str(model_path), "--port", str(port),
+            *schedule_arguments(spec, iterations, interval)]
 
 
 def dense_settings(iterations: int, interval: int) -> dict:

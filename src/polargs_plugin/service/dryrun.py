@@ -16,12 +16,12 @@ import os
 import socket
 import subprocess
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from statistics import mean
 from typing import Callable, Sequence
 
-from polargs_plugin.dryrun.trainers import TRAINERS, dense_settings, schedule_arguments
+from polargs_plugin.dryrun.trainers import TRAINERS, dense_settings, trainer_arguments
 from polargs_plugin.io import PolarInputError, atomic_write
 from polargs_plugin.kit.patching import is_marked, strip_marked
 from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder
@@ -101,12 +101,14 @@ class DryRunResult:
 def _train_script(checkout: Path, trainer: str) -> tuple[Path, str]:
     if trainer not in TRAINERS:
         raise PolarInputError("--trainer", f"unknown trainer {trainer!r} (choose one of {', '.join(sorted(TRAINERS))})")
-    script = checkout / "train.py"
+    spec = TRAINERS[trainer]
+    script = checkout / spec.script
     if not script.is_file():
-        raise PolarInputError(checkout, "has no train.py (give the trainer's checkout folder)")
+        where = "the folder holding it (gsplat: examples/)" if spec.family == "gsplat" else "the trainer's checkout folder"
+        raise PolarInputError(checkout, f"has no {spec.script} (give {where})")
     text = script.read_text(encoding="utf-8", errors="surrogateescape")
     if not any(is_marked(line) for line in text.splitlines()):
-        adapter = TRAINERS[trainer].adapter
+        adapter = spec.adapter
         raise PolarInputError(script, f"is not patched: run `python adapters/{adapter}/patch.py {checkout}` first")
     return script, text
 
@@ -153,8 +155,8 @@ def _run(label: str, script: Path, request: DryRunRequest, scene: Path, env: dic
     log_path = request.workdir / f"{label}.log"
     report_path.unlink(missing_ok=True)
     spec = TRAINERS[request.trainer]
-    arguments = ["-s", str(scene / "colmap"), "-m", str(model_path), "--port", str(port),
-                 *schedule_arguments(spec, request.iterations, request.interval), *request.train_arguments]
+    arguments = [*trainer_arguments(spec, scene / "colmap", model_path, port, request.iterations, request.interval),
+                 *request.train_arguments]
     command = [sys.executable, "-m", "polargs_plugin.dryrun.launch", "--trainer", request.trainer,
                "--checkout", str(request.checkout), "--script", str(script), "--report", str(report_path),
                "--model-path", str(model_path), "--", *arguments]
@@ -177,6 +179,8 @@ def dry_run(request: DryRunRequest, progress: Callable[[str], None] | None = Non
         PolarInputError: an unknown trainer, no ``train.py``, an unpatched one, too few iterations.
     """
     say = progress or (lambda message: None)
+    # the runs start in the checkout: relative paths would be read from there
+    request = replace(request, checkout=request.checkout.resolve(), workdir=request.workdir.resolve())
     if request.iterations < 4 * request.interval or request.interval < 1:
         raise PolarInputError("--iters", f"needs at least 4 intervals of {request.interval} iterations")
     script, text = _train_script(request.checkout, request.trainer)
@@ -189,7 +193,7 @@ def dry_run(request: DryRunRequest, progress: Callable[[str], None] | None = Non
     env, port = _environment(scene, settings), _free_port()
     runs = [("patched", script)]
     if request.compare:
-        unpatched = request.workdir / "train_unpatched.py"
+        unpatched = request.workdir / f"{script.stem}_unpatched.py"
         with atomic_write(unpatched) as handle:
             handle.write(strip_marked(text))
         runs.append(("unpatched", unpatched))
