@@ -4,7 +4,7 @@ scale/rotation pairs) the way the CUDA preprocessing does, then calling :func:`.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -12,7 +12,25 @@ from torch import Tensor, nn
 from polargs_plugin.dryrun.splat import NEAR_PLANE, SplatOut, camera_from_upstream, splat
 from polargs_plugin.geometry import eval_sh
 
-__all__ = ["check_inputs", "view_colors", "render_setting", "with_background", "SettingsRasterizer"]
+__all__ = ["RasterSettings", "check_inputs", "view_colors", "render_setting", "with_background", "SettingsRasterizer"]
+
+
+class RasterSettings(NamedTuple):
+    """The raster setting of graphdeco's 2023 rasterizer, which 2DGS's keeps (same fields, same
+    order); the 2024 form, GOF's and PGSR's add fields of their own."""
+
+    image_height: int
+    image_width: int
+    tanfovx: float
+    tanfovy: float
+    bg: Tensor
+    scale_modifier: float
+    viewmatrix: Tensor
+    projmatrix: Tensor
+    sh_degree: int
+    campos: Tensor
+    prefiltered: bool
+    debug: bool
 
 
 def check_inputs(shs: Tensor | None, colors_precomp: Tensor | None, scales: Tensor | None, rotations: Tensor | None,

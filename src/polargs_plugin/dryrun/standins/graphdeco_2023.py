@@ -9,30 +9,15 @@ alpha); the projection matrix is not read (the frustum comes from the FoVs, as u
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 from torch import Tensor
 
-from polargs_plugin.dryrun.standins.common import SettingsRasterizer, check_inputs, render_setting, view_colors, with_background
+from polargs_plugin.dryrun.standins.common import RasterSettings, SettingsRasterizer, check_inputs, render_setting, view_colors, with_background
 
 __all__ = ["GaussianRasterizationSettings", "GaussianRasterizer"]
 
 
-class GaussianRasterizationSettings(NamedTuple):
-    """The upstream raster setting (same fields, same order)."""
-
-    image_height: int
-    image_width: int
-    tanfovx: float
-    tanfovy: float
-    bg: Tensor
-    scale_modifier: float
-    viewmatrix: Tensor
-    projmatrix: Tensor
-    sh_degree: int
-    campos: Tensor
-    prefiltered: bool
-    debug: bool
+#: The upstream raster setting (same fields, same order).
+GaussianRasterizationSettings = RasterSettings
 
 
 class GaussianRasterizer(SettingsRasterizer):
