@@ -126,6 +126,7 @@ BAD_VALUES = [
     ("train", "density.prune_opa", 1.0, "in [0, 1)"),
     ("train", "density.prune_scale3d", 0.0, "> 0"),
     ("train", "density.prune_screen_px", -20.0, "> 0"),
+    ("train", "density.prune_screen_fraction", 0.0, "in (0, 1] or null"),
     ("train", "density.refine_start", -1, "a non-negative integer"),
     ("train", "density.refine_stop", -1, "a non-negative integer"),
     ("train", "density.refine_every", 0, "a positive integer"),

@@ -113,6 +113,24 @@ def test_prune_large_only_after_first_reset():
     assert model.num == 1 and float(model.log_scales.detach()[0, 0]) == -6.0
 
 
+@pytest.mark.parametrize(("width", "kept"), [(128, [True, False, True]), (612, [True, True, True]),
+                                             (1224, [True, True, True])])
+def test_screen_limit_as_a_share_of_the_image_width(width, kept):
+    """prune_screen_fraction = 20 / 128: 20 px at 128 px (vanilla's limit there), 95.6 px at 612;
+    radii 1, 25 and 5 px: only the 25-px splat of a 128-px image is too big."""
+    model = _model(log_scales=[[-6.0] * 3] * 3, logits=[2.0, 2.0, 2.0])
+    ctrl = DensityControl(DensityConfig(grow_grad2d=1.0, prune_screen_fraction=20 / 128), EXTENT, image_width=width)
+    assert ctrl.screen_limit_px == pytest.approx(20 * width / 128)
+    ctrl.load_state_dict(_stats([0.0, 0.0, 0.0], radii=[1, 25, 5]))
+    ctrl.refine(model, prune_large=True)
+    assert model.num == sum(kept)
+
+
+def test_screen_fraction_needs_the_image_width():
+    with pytest.raises(ValueError, match="image width"):
+        DensityControl(DensityConfig(prune_screen_fraction=0.2), EXTENT)
+
+
 def test_schedule_scaled_by_one_factor():
     cfg = DensityConfig().scaled(0.1)
     assert (cfg.refine_start, cfg.refine_stop, cfg.refine_every, cfg.reset_every) == (50, 1500, 10, 300)

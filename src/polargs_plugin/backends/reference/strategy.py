@@ -53,6 +53,12 @@ class DensityConfig(CheckedConfig):
             extent are pruned; > 0. Default and vanilla 0.1.
         prune_screen_px: after the first opacity reset, Gaussians whose screen radius exceeded
             this many pixels since the last refinement are pruned; > 0. Default and vanilla 20.
+        prune_screen_fraction: when set, the screen limit is this fraction of the widest view's
+            width instead of ``prune_screen_px``: a model capped at a few thousand Gaussians
+            (``max_gaussians``) covers a larger image with larger splats, and an absolute limit
+            tuned at one size prunes the whole model at a larger one (``TrainConfig.cpu`` sets
+            20 / 128, vanilla's 20 px at the bundled scenes' 128 px); in (0, 1], or None
+            (default): ``prune_screen_px``.
         refine_start: refinement runs at iterations after this one; >= 0. Default and vanilla 500.
         refine_stop: no refinement, and no statistics, from this iteration on; >= 0 (at most
             ``refine_start``: vanilla density control off). Default and vanilla 15000.
@@ -75,6 +81,7 @@ class DensityConfig(CheckedConfig):
     prune_opa: float = field(default=0.005, metadata=within(0, 1, high_open=True))
     prune_scale3d: float = field(default=0.1, metadata=above(0))
     prune_screen_px: float = field(default=20.0, metadata=above(0))
+    prune_screen_fraction: float | None = field(default=None, metadata=within(0, 1, low_open=True))
     refine_start: int = field(default=500, metadata=at_least(0))
     refine_stop: int = field(default=15_000, metadata=at_least(0))
     refine_every: int = field(default=100, metadata=at_least(1))
@@ -101,14 +108,21 @@ class DensityControl:
     Args:
         config: thresholds and (already scaled) schedule.
         extent: scene extent (world-size thresholds are relative to it).
+        image_width: the widest training view's width in pixels, for
+            ``config.prune_screen_fraction``.
 
     State (``state_dict()``): ``grad2d`` (N,) summed NDC gradient norms, ``count`` (N,) number of
     accumulations, ``max_radii`` (N,) largest screen radius in pixels since the last refinement.
     """
 
-    def __init__(self, config: DensityConfig, extent: float):
+    def __init__(self, config: DensityConfig, extent: float, image_width: int | None = None):
+        if config.prune_screen_fraction is not None and image_width is None:
+            raise ValueError("DensityControl: prune_screen_fraction needs the image width")
         self.config = config
         self.extent = float(extent)
+        #: the screen radius in pixels above which a Gaussian is pruned (after the first reset)
+        self.screen_limit_px = (config.prune_screen_px if config.prune_screen_fraction is None
+                                else config.prune_screen_fraction * image_width)
         self.state: dict[str, Tensor | None] = {"grad2d": None, "count": None, "max_radii": None}
 
     # -------------------------------------------------------------------- statistics
@@ -192,7 +206,7 @@ class DensityControl:
         prune = model.opacities < c.prune_opa
         if prune_large:
             prune |= model.scales.max(dim=1).values > c.prune_scale3d * self.extent
-            prune |= self.state["max_radii"] > c.prune_screen_px
+            prune |= self.state["max_radii"] > self.screen_limit_px
         n_prune = int(prune.sum())
         if n_prune:
             self._keep(model, ~prune)

@@ -68,6 +68,7 @@ class TrainingDiverged(RuntimeError):
 
 
 CPU_EPS2D = 0.1  # the CPU preset's screen dilation (pixels^2), TrainConfig.cpu
+CPU_PRUNE_SCREEN_FRACTION = 20 / 128  # the CPU preset's screen-size prune, as a share of the image width
 # The progress bar's remaining time comes from the rate averaged over the last ~1/this iterations
 # (tqdm's smoothing): long enough to spread the periodic Dense calls, short enough to follow the
 # model's growth.
@@ -167,7 +168,8 @@ class TrainConfig(CheckedConfig):
     def cpu(cls, factor: float = CPU_FACTOR, **overrides: Any) -> "TrainConfig":
         """Every schedule multiplied by ``factor`` for a CPU run at 128x128: SH degree 1, 2000
         initial points, at most 6000 Gaussians from vanilla density control (Dense's appends come
-        on top, see :class:`DensityConfig`), no opacity reset, a screen dilation ``eps2d`` of
+        on top, see :class:`DensityConfig`), the screen-size prune at 20 / 128 of the image width
+        (vanilla's 20 px at 128 px; larger images keep that share), no opacity reset, a screen dilation ``eps2d`` of
         0.1 px^2 instead of 0.3 and a ``mask_edge_band`` of 1 pixel (a pixel at 128 px is a large
         share of the object: vanilla's dilation widened silhouettes by ~1.4 px, and training
         against the background just outside the mask offset the spill by recessing the surface;
@@ -183,7 +185,7 @@ class TrainConfig(CheckedConfig):
             schedule_scale=factor,
             sh_degree=1,
             num_init_points=2000,
-            density=DensityConfig(max_gaussians=6000, opacity_reset=False),
+            density=DensityConfig(max_gaussians=6000, opacity_reset=False, prune_screen_fraction=CPU_PRUNE_SCREEN_FRACTION),
             eps2d=CPU_EPS2D,
             mask_edge_band=1,
         )
@@ -248,7 +250,7 @@ class Trainer:
             lrs=lrs,
             eps2d=cfg.eps2d,
         )
-        self.density = DensityControl(cfg.density.scaled(factor), self.extent)
+        self.density = DensityControl(cfg.density.scaled(factor), self.extent, max(v.width for v in self.views))
         self.iteration = 0
         self._sampler = torch.Generator().manual_seed(cfg.seed)
         self._order: list[int] = []
