@@ -324,7 +324,7 @@ class PolarHooks:
 
     def _maps_dtype(self, view: View) -> torch.dtype:
         """The dtype of a preprocessed view's maps, which a render's tensors must share."""
-        return self.maps[view.name].intensity.dtype
+        return self.maps.dtype(view.name)  # without decoding the maps (the step reads them once, later)
 
     def geometry_needed(self, iteration: int, view_name: str) -> bool:
         """Whether :meth:`loss` reads the render's depth, normal or alpha at this iteration for

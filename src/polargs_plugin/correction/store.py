@@ -31,7 +31,7 @@ from polargs_plugin.config import PolarConfig
 from polargs_plugin.io import atomic_torch_save
 from polargs_plugin.types import PolarMaps, View, content_digest, describe_view
 
-__all__ = ["CACHE_VERSION", "MEMORY_BUDGET", "BytesLRU", "MapsStore", "maps_cache_key", "maps_cache_file",
+__all__ = ["CACHE_VERSION", "MEMORY_BUDGET", "BytesLRU", "MapsStore", "expanded_dtype", "maps_cache_key", "maps_cache_file",
            "compact_maps", "expand_maps", "tensor_bytes"]
 
 #: Bumped when compute_polar_maps or the stored form changes for the same input: older cache files
@@ -101,12 +101,16 @@ def expand_maps(data: Mapping[str, Tensor], device: torch.device | str = "cpu") 
         raise KeyError("cache entry lacks aolp/dolp/intensity")
 
     def expanded(value: Tensor) -> Tensor:
-        value = value.to(device)
-        return value.to(torch.float32) if value.is_floating_point() else value
+        return value.to(device).to(expanded_dtype(value))
 
     extras = {name[len("extras."):]: expanded(value) for name, value in data.items() if name.startswith("extras.")}
     return PolarMaps(**{name: None if data.get(name) is None else expanded(data[name]) for name in _MAP_FIELDS},
                      extras=extras)
+
+
+def expanded_dtype(value: Tensor) -> torch.dtype:
+    """The dtype :func:`expand_maps` gives a stored map: float32 for float values, else its own."""
+    return torch.float32 if value.is_floating_point() else value.dtype
 
 
 def _entry_problem(data: Any, height: int, width: int) -> str | None:
@@ -179,6 +183,7 @@ class MapsStore(Mapping[str, PolarMaps]):
         self._files: dict[str, Path] = {}
         self._memory: dict[str, dict[str, Tensor]] = {}
         self._devices: dict[str, torch.device] = {}
+        self._dtypes: dict[str, torch.dtype] = {}  # what each view's maps decode to (their intensity's)
         self._recent = BytesLRU(budget)
 
     def prepare(self, view: View, config: PolarConfig, compute: Callable[[], PolarMaps]) -> None:
@@ -187,15 +192,16 @@ class MapsStore(Mapping[str, PolarMaps]):
         be trusted is recomputed (with a warning when it is readable but wrong)."""
         self._devices[view.name] = view.device
         if self.folder is None:
-            self._memory[view.name] = compact_maps(compute())
-            return
-        path = maps_cache_file(self.folder, view, maps_cache_key(view, config))
-        data = self._read(path, view) if path.is_file() else None
-        if data is None:
-            data = compact_maps(compute())
-            atomic_torch_save(data, path)
-        self._files[view.name] = path
-        self._recent.put(view.name, data, tensor_bytes(data))
+            data = self._memory[view.name] = compact_maps(compute())
+        else:
+            path = maps_cache_file(self.folder, view, maps_cache_key(view, config))
+            data = self._read(path, view) if path.is_file() else None
+            if data is None:
+                data = compact_maps(compute())
+                atomic_torch_save(data, path)
+            self._files[view.name] = path
+            self._recent.put(view.name, data, tensor_bytes(data))
+        self._dtypes[view.name] = expanded_dtype(data["intensity"])
 
     def _read(self, path: Path, view: View) -> dict[str, Tensor] | None:
         try:
@@ -222,6 +228,10 @@ class MapsStore(Mapping[str, PolarMaps]):
         if name not in self._devices:
             raise KeyError(name)
         return expand_maps(self.compact(name), self._devices[name])
+
+    def dtype(self, name: str) -> torch.dtype:
+        """The dtype ``store[name]``'s intensity decodes to, without reading or decoding the maps."""
+        return self._dtypes[name]
 
     def __contains__(self, name: object) -> bool:  # without decoding (Mapping's would)
         return name in self._devices
