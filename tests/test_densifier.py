@@ -142,6 +142,46 @@ def test_state_dict_round_trip():
         assert torch.equal(a.means, b.means)
 
 
+class _FolderMaps(dict):
+    """Maps with a cache folder, as MapsStore on a run's maps/ (the densifier's state goes there)."""
+
+    def __init__(self, maps, folder):
+        super().__init__(maps)
+        self.folder = folder
+
+
+def test_the_state_in_a_folder_gives_the_same_densification_and_leaves_nothing_behind(tmp_path):
+    """With a cache folder, each visited view's PatchMatch result lives in a file of a temporary
+    folder there (nothing per view in memory); the appends, the L_n targets and the checkpoint
+    state equal the in-memory densifier's bit for bit; the folder goes with the densifier."""
+    import gc
+
+    views, renders, maps, render_fn, cfg = _setup()
+    memory = PolarDensifier(cfg, views, maps)
+    spilled = PolarDensifier(cfg, views, _FolderMaps(maps, tmp_path))
+    (folder,) = tmp_path.glob(".dense-state-*")
+    for k, view in enumerate(views[:3]):  # the later calls read the earlier views' kept depths
+        it = cfg.densify.start_iter + k * cfg.densify.interval
+        a, b = memory(it, view, render_fn, None), spilled(it, view, render_fn, None)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.equal(a.means, b.means) and torch.equal(a.scales, b.scales)
+    assert spilled._states._memory == {} and len(list(folder.iterdir())) == 3
+    for view in views[:3]:
+        (n1, v1), (n2, v2) = memory.normal_target(view.name), spilled.normal_target(view.name)
+        assert n2.device == views[0].device and torch.equal(n1, n2) and torch.equal(v1, v2)
+    assert spilled.normal_target(views[3].name) is None
+    state_a, state_b = memory.state_dict(), spilled.state_dict()
+    assert state_a["depths"].keys() == state_b["depths"].keys()
+    assert all(torch.equal(state_a["depths"][k], state_b["depths"][k]) for k in state_a["depths"])
+    resumed = PolarDensifier(cfg, views, _FolderMaps(maps, tmp_path))
+    resumed.load_state_dict(state_b)
+    assert torch.equal(resumed.normal_target(views[1].name)[0], memory.normal_target(views[1].name)[0])
+    del spilled, resumed
+    gc.collect()
+    assert list(tmp_path.glob(".dense-state-*")) == []
+
+
 def test_source_depth_prefers_kept_patchmatch_then_opaque_render_then_unconfirmed_patchmatch():
     from polargs_plugin.densify.densifier import source_depth
 

@@ -325,6 +325,9 @@ def test_the_estimate_refuses_in_one_line_and_names_the_resolution_that_fits(sce
     unknown = estimates.estimate_memory(views, train, None, held=500 << 20, available=None)
     assert unknown.fits and unknown.dense_calls == 0
     assert estimates.dense_calls(polar, 1000) == 11  # 500, 550, ..., 1000
+    # Dense's per-view state (9 bytes a pixel of every view) is in memory only without a maps folder
+    on_disk = estimates.estimate_memory(views, train, polar, held=500 << 20, available=None, maps_folder=True)
+    assert roomy.peak_bytes - on_disk.peak_bytes == estimates.DENSE_STATE_BYTES_PER_PIXEL * roomy.pixels
 
 
 def test_a_cuda_training_is_estimated_against_the_gpus_memory(scene_folder, monkeypatch):

@@ -22,21 +22,71 @@ On each scheduled iteration, for the current training view:
 
 from __future__ import annotations
 
+import tempfile
+from pathlib import Path
+
 import torch
 from torch import Tensor
 
 from polargs_plugin.config import PolarConfig
+from polargs_plugin.io import atomic_torch_save
 from polargs_plugin.densify.filters import consistency_filter
 from polargs_plugin.densify.patchmatch import patchmatch
 from polargs_plugin.densify.seeding import seed_gaussians, seed_mask, seed_relative_depth
 from polargs_plugin.densify.view_selection import scene_center, select_sources
 from polargs_plugin.types import GaussianState, NewGaussians, PolarMaps, RenderOut, View
 
-__all__ = ["PolarDensifier", "source_depth", "STATE_DTYPE"]
+__all__ = ["PolarDensifier", "ViewStates", "source_depth", "STATE_DTYPE"]
 
 #: Every visited view's last PatchMatch depth and normal are kept (the sources' evidence, the L_n
 #: targets) in this dtype: relative 4.9e-4, far below PatchMatch's own error, at half the memory.
 STATE_DTYPE = torch.float16
+
+#: One view's kept PatchMatch result: depth (1, H, W) and normal (3, H, W) in STATE_DTYPE, and
+#: where they passed the filters, valid (1, H, W) bool.
+ViewState = tuple[Tensor, Tensor, Tensor]
+
+
+class ViewStates:
+    """The kept PatchMatch result of every visited view, in memory or in a temporary folder.
+
+    With a ``parent`` folder (the maps cache of a run), each view's state lives in a file of a
+    temporary folder created there and removed when the store is garbage-collected or the
+    process exits; a view's state is read when it is used (the L_n target of the current view,
+    the sources of a Dense call), so the memory does not grow with the number of views visited.
+
+    Args:
+        parent: where the temporary folder goes; None keeps the states in memory.
+    """
+
+    def __init__(self, parent: str | Path | None = None):
+        self._memory: dict[str, ViewState] = {}
+        self._folder = None if parent is None else tempfile.TemporaryDirectory(prefix=".dense-state-", dir=parent, ignore_cleanup_errors=True)
+        self._names: set[str] = set()
+
+    def _path(self, name: str) -> Path:
+        return Path(self._folder.name) / f"{len(name)}-{name.encode().hex()}.pt"  # any view name, one file
+
+    def put(self, name: str, depth: Tensor, normal: Tensor, valid: Tensor) -> None:
+        state = (depth.detach().to(STATE_DTYPE), normal.detach().to(STATE_DTYPE), valid.detach().bool())
+        if self._folder is None:
+            self._memory[name] = state
+        else:
+            atomic_torch_save([t.cpu() for t in state], self._path(name))
+        self._names.add(name)
+
+    def get(self, name: str, device: torch.device | str | None = None) -> ViewState | None:
+        """The view's state (None before its first Dense call), on ``device`` (default: as stored)."""
+        if name not in self._names:
+            return None
+        if self._folder is None:
+            state = self._memory[name]
+        else:
+            state = tuple(torch.load(self._path(name), map_location="cpu", weights_only=True))
+        return state if device is None else tuple(t.to(device) for t in state)
+
+    def names(self) -> list[str]:
+        return sorted(self._names)
 
 
 def source_depth(
@@ -70,6 +120,9 @@ class PolarDensifier:
         config: PolarConfig (uses ``config.densify`` and its patchmatch / filters sections).
         views: all training views (their cameras drive source selection).
         maps: PolarMaps per view name (AoLP / DoLP); views without maps run without the AoLP term.
+            A store with a ``folder`` (a :class:`~polargs_plugin.correction.store.MapsStore` on a
+            cache folder) also hosts the per-view Dense state in a temporary folder there
+            (:class:`ViewStates`).
     """
 
     def __init__(self, config: PolarConfig, views: list[View], maps: dict[str, PolarMaps]):
@@ -81,8 +134,7 @@ class PolarDensifier:
         self._index = {v.name: i for i, v in enumerate(self.views)}
         self._w2c = torch.stack([v.world_to_camera.to(torch.float64).cpu() for v in self.views])
         self._center = scene_center(self._w2c) if len(self.views) > 1 else None
-        self._depths: dict[str, Tensor] = {}
-        self._targets: dict[str, tuple[Tensor, Tensor]] = {}
+        self._states = ViewStates(getattr(maps, "folder", None))
         self._generator = torch.Generator().manual_seed(config.densify.patchmatch.seed)
         self.calls = 0
         # Gaussians appended so far, and the most all calls may append (None: no budget; set at
@@ -148,7 +200,6 @@ class PolarDensifier:
             render = render_fn(view)
         dev = render.depth.device
         src_views = [self.views[j] for j in src]
-        src_renders = [render_fn(v) for v in src_views]
         ref_maps = self.maps.get(view.name)
         mask = view.mask.to(dev) if (cfg.use_view_mask and view.mask is not None) else None
         init_valid = render.alpha > cfg.alpha_threshold
@@ -164,25 +215,31 @@ class PolarDensifier:
             dolp=ref_maps.dolp.to(dev) if ref_maps is not None else None,
             mask=mask, init_valid=init_valid, config=cfg.patchmatch, generator=gen,
         )
+        del ref_maps
         photometric_ok = (result.photometric_cost <= cfg.filters.max_photometric_cost) & (result.depth > 0)
         depth = torch.where(photometric_ok, result.depth, torch.zeros_like(result.depth))
 
-        src_depths = []
-        for v, r in zip(src_views, src_renders):
-            cached = self._depths.get(v.name)
-            kept = self._targets[v.name][1].to(dev) if cached is not None else None
+        # the sources are rendered after PatchMatch, which does not read them, and only their
+        # depth evidence and normals are kept: at real sizes a Dense call's peak memory
+        src_depths, src_normals = [], []
+        for v in src_views:
+            r = render_fn(v)
+            kept = self._states.get(v.name, dev)
             src_depths.append(source_depth(r.depth, r.alpha, cfg.alpha_threshold,
-                                           cached.to(dev, torch.float32) if cached is not None else None, kept))
+                                           None if kept is None else kept[0].to(torch.float32),
+                                           None if kept is None else kept[2]))
+            src_normals.append(r.normal)
+            del r, kept
         all_maps = [self.maps.get(v.name) for v in [view] + src_views]
         polar = all(m is not None for m in all_maps)
         keep = consistency_filter(
-            [depth] + src_depths, [result.normal] + [r.normal for r in src_renders], [view] + src_views,
+            [depth] + src_depths, [result.normal] + src_normals, [view] + src_views,
             aolps=[m.aolp.to(dev) for m in all_maps] if polar else None,
             dolps=[m.dolp.to(dev) for m in all_maps] if polar else None,
             config=cfg.filters, reference=0,
         )
-        self._depths[view.name] = depth.detach().to(STATE_DTYPE)
-        self._targets[view.name] = (result.normal.detach().to(STATE_DTYPE), keep.detach())
+        del all_maps, src_depths, src_normals
+        self._states.put(view.name, depth, result.normal, keep)
         self.calls += 1
 
         seeds = seed_mask(keep, result.depth, render.depth, render.alpha,
@@ -217,8 +274,9 @@ class PolarDensifier:
             (normal (3, H, W) camera frame, float32; valid (1, H, W) bool), or None before the
             first run.
         """
-        target = self._targets.get(view_name)
-        return None if target is None else (target[0].to(torch.float32), target[1])
+        index = self._index.get(view_name)
+        state = None if index is None else self._states.get(view_name, self.views[index].device)
+        return None if state is None else (state[1].to(torch.float32), state[2])
 
     def state_dict(self) -> dict:
         return {
@@ -226,8 +284,9 @@ class PolarDensifier:
             "appended": self.appended,
             "budget": self.budget,
             "generator": self._generator.get_state(),
-            "depths": {k: v.cpu() for k, v in self._depths.items()},
-            "targets": {k: {"normal": n.cpu(), "valid": m.cpu()} for k, (n, m) in self._targets.items()},
+            "depths": {k: self._states.get(k, "cpu")[0] for k in self._states.names()},
+            "targets": {k: {"normal": n, "valid": m}
+                        for k, (_, n, m) in ((k, self._states.get(k, "cpu")) for k in self._states.names())},
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -236,5 +295,6 @@ class PolarDensifier:
         self.appended = int(state.get("appended", 0))
         self.budget = state.get("budget")
         self._generator.set_state(state["generator"])
-        self._depths = {k: v.to(STATE_DTYPE) for k, v in state["depths"].items()}
-        self._targets = {k: (v["normal"].to(STATE_DTYPE), v["valid"]) for k, v in state["targets"].items()}
+        for name, depth in state["depths"].items():
+            target = state["targets"][name]
+            self._states.put(name, depth, target["normal"], target["valid"])

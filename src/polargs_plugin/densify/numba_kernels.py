@@ -13,7 +13,10 @@ Array conventions (all C-contiguous numpy views of the torch tensors):
   ``A`` (S, 3, 3) = ``K_s R K_ref^-1``, ``b`` (S, 3) = ``K_s t`` (float64);
 - ``rays`` (3, H, W) ``K_ref^-1 p~``; ``kinv`` (3, 3) float64;
 - ``ref_w`` (P, Q) normalised bilateral weights, ``ref_wc`` (P, Q) ``w (r - mean)``, ``ref_var``
-  (P,) on the window grid ``range(-radius, radius + 1, step)`` squared, rows outer;
+  (P,) on the window grid ``range(-radius, radius + 1, step)`` squared, rows outer, one row per
+  pixel of the list given to ``reference_kernel`` (the search's: its active pixels, so that a
+  masked object's background costs no memory); ``rows`` (H * W,) int32 the row of each flat
+  pixel (-1: none);
 - ``phi`` (H, W) AoLP, ``omega`` (H, W) DoLP weight; ``params`` float64
   ``[lambda1 (0 = off), tau, lambda2 (0 = off), perspective (0/1), lo, hi]``;
 - state ``depth`` (H, W), ``normal`` (3, H, W), ``photo`` (H, W), ``total`` (H, W) float32;
@@ -43,15 +46,16 @@ _OPTS = dict(fastmath=_FAST, cache=True, nogil=True)
 
 
 @nb.njit(parallel=True, **_OPTS)
-def reference_kernel(gray, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc, ref_var):
-    """Bilateral weights ``ref_w``, ``w (r - mean)`` and variance of every reference window.
+def reference_kernel(gray, pixels, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc, ref_var):
+    """Bilateral weights ``ref_w``, ``w (r - mean)`` and variance of the reference windows at the
+    flat pixels ``pixels`` (row i: pixel ``pixels[i]``).
 
     Same definition as ncc.reference_windows (replicated border, weights normalised to sum to 1).
     """
     h, w = gray.shape
     n1 = (2 * radius) // step + 1
-    for i in nb.prange(h * w):
-        y, x = i // w, i % w
+    for i in nb.prange(pixels.shape[0]):
+        y, x = pixels[i] // w, pixels[i] % w
         centre = gray[y, x]
         total = 0.0
         q = 0
@@ -249,7 +253,7 @@ def _pixel_setup(src, A, x, y):
 
 @nb.njit(parallel=True, **_OPTS)
 def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref_wc,
-                ref_var, phi, omega, params, active, depth, out_depth, out_normal, out_photo, out_total):
+                ref_var, rows, phi, omega, params, active, depth, out_depth, out_normal, out_photo, out_total):
     """Score the M initial hypotheses ``cand_d`` (M, H, W), ``cand_n`` (M, 3, H, W) at ``idx``.
 
     Reads ``depth`` (for S_nd), writes the cheapest admissible hypothesis into the ``out_*``
@@ -266,7 +270,8 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
         i = idx[j]
         y, x = i // w, i % w
         vx, vy, vz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
-        rv = ref_var[i]
+        row = rows[i]
+        rv = ref_var[row]
         textured = rv >= _MIN_VAR
         ax, ay, az = _pixel_setup(src, A, x, y)
         scratch = np.empty(num_s)
@@ -282,7 +287,7 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
             c_photo = _MAX_COST
             if textured:
                 c_photo = _photometric(src, A, b, kinv, ax, ay, az, vx, vy, vz, d, nx, ny, nz, radius,
-                                       step, n1, top_k, ref_w, ref_wc, i, rv, scratch)
+                                       step, n1, top_k, ref_w, ref_wc, row, rv, scratch)
                 count += num_s
             c = c_photo + _prior(nx, ny, nz, vx, vy, vz, phi[y, x], omega[y, x], params, has_dg, gx, gy, gz)
             if c < best:
@@ -298,7 +303,7 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
 
 
 @nb.njit(parallel=True, **_OPTS)
-def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref_wc, ref_var, phi,
+def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref_wc, ref_var, rows, phi,
                      omega, params, active, dists, rel, ang, uni, noise, depth, normal, photo, total):
     """One checkerboard half-step over the pixels ``idx`` (all of one colour), in place.
 
@@ -317,7 +322,8 @@ def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref
         i = idx[j]
         y, x = i // w, i % w
         vx, vy, vz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
-        rv = ref_var[i]
+        row = rows[i]
+        rv = ref_var[row]
         textured = rv >= _MIN_VAR
         ax, ay, az = _pixel_setup(src, A, x, y)
         scratch = np.empty(num_s)
@@ -360,7 +366,7 @@ def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref
             c_photo = _MAX_COST
             if textured:
                 c_photo = _photometric(src, A, b, kinv, ax, ay, az, vx, vy, vz, d, nx, ny, nz, radius,
-                                       step, n1, top_k, ref_w, ref_wc, i, rv, scratch)
+                                       step, n1, top_k, ref_w, ref_wc, row, rv, scratch)
                 count += num_s
             c = c_photo + _prior(nx, ny, nz, vx, vy, vz, phi[y, x], omega[y, x], params, has_dg, gx, gy, gz)
             if c < best:

@@ -33,8 +33,9 @@ HOOKS_BYTES_PER_PIXEL = 250
 #: Bytes per pixel of the reference view that one Dense call allocates (PatchMatch, renders of
 #: the sources, filters).
 DENSE_BYTES_PER_PIXEL = 900
-#: Bytes per pixel of every view that Dense keeps once it visited the view (float16 depth and
-#: normal, a bool mask: ``densify.densifier.STATE_DTYPE``).
+#: Bytes per pixel of every view that Dense keeps in memory once it visited the view (float16
+#: depth and normal, a bool mask: ``densify.densifier.STATE_DTYPE``) when the maps have no cache
+#: folder; with one (every ``polargs train``), that state lives in files there instead.
 DENSE_STATE_BYTES_PER_PIXEL = 9
 #: Bytes per Gaussian: parameters, gradients and Adam moments (SH degree 3 at most), density
 #: statistics, the rasterizer's per-Gaussian buffers.
@@ -182,7 +183,8 @@ def dense_calls(polar: PolarConfig | None, iterations: int) -> int:
 
 
 def estimate_memory(views: Sequence[View], train: TrainConfig, polar: PolarConfig | None,
-                    held: int | None = None, available: int | None = -1) -> RunEstimate:
+                    held: int | None = None, available: int | None = -1,
+                    maps_folder: bool | None = None) -> RunEstimate:
     """The peak memory of training ``views`` with these settings, and what is available.
 
     Args:
@@ -191,6 +193,8 @@ def estimate_memory(views: Sequence[View], train: TrainConfig, polar: PolarConfi
         polar: the PolarGS settings (None: Base).
         held: the process's resident memory now (default: measured).
         available: the memory the system can still give (default -1: measured; None: unknown).
+        maps_folder: whether the maps will have a cache folder, which also holds Dense's per-view
+            state (default: whether ``polar.cache_dir`` is set).
     """
     from polargs_plugin.correction.store import MEMORY_BUDGET
 
@@ -209,7 +213,8 @@ def estimate_memory(views: Sequence[View], train: TrainConfig, polar: PolarConfi
     calls = dense_calls(polar, train.iterations)
     growth = per_step * view_pixels
     if calls:
-        growth += DENSE_BYTES_PER_PIXEL * view_pixels + DENSE_STATE_BYTES_PER_PIXEL * pixels
+        state_in_memory = not (polar.cache_dir is not None if maps_folder is None else maps_folder)
+        growth += DENSE_BYTES_PER_PIXEL * view_pixels + DENSE_STATE_BYTES_PER_PIXEL * pixels * state_in_memory
     cap = train.density.max_gaussians or 3 * train.num_init_points
     appended = calls * polar.densify.max_new_per_call if calls else 0
     fixed = BYTES_PER_GAUSSIAN * (cap + appended) + 2 * MEMORY_BUDGET * (polar is not None)

@@ -312,7 +312,8 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
     if dataset.sfm_model:
         took = "" if dataset.sfm_seconds is None else f" in {dataset.sfm_seconds:.0f} s"
         notify(f"SfM: model written to {dataset.sfm_model}{took}")
-    estimate = progress.estimate = estimate_memory(dataset.views, request.train, request.polar)
+    # the maps get a cache folder below (prepare_maps_cache), which hosts Dense's per-view state
+    estimate = progress.estimate = estimate_memory(dataset.views, request.train, request.polar, maps_folder=True)
     notify(estimate.memory_line())
     if request.memory_check and not estimate.fits:
         raise PolarInputError(request.dataset, estimate.refusal())
