@@ -115,6 +115,27 @@ def test_the_maps_cache_keeps_float16_maps_and_the_exact_training_colour(scene_f
     assert calls == [1] and view.name in again and torch.equal(again[view.name].aolp, back.aolp)
 
 
+def test_a_cache_of_views_keeps_entries_only_when_every_view_fits():
+    """Views visited in a random order: a cache of a few of many would rarely hit, so with
+    ``cycle`` set it keeps an entry only when ``cycle`` of them fit; least recently used first out."""
+    from polargs_plugin.correction.store import BytesLRU
+
+    cache = BytesLRU(100)
+    for key in "abcd":
+        cache.put(key, key.upper(), 30)
+    assert [cache.get(k) for k in "abcd"] == [None, "B", "C", "D"] and cache.bytes == 90
+    cache.set_cycle(4)  # 4 entries of 30 bytes do not fit in 100: nothing is kept any more
+    assert [cache.get(k) for k in "bcd"] == [None, None, None] and cache.bytes == 0
+    cache.put("a", "A", 30)
+    assert cache.get("a") is None
+    cache.put("e", "E", 25)  # 4 of 25 fit
+    assert cache.get("e") == "E"
+    cache.set_cycle(3)
+    for key in "abc":
+        cache.put(key, key.upper(), 30)
+    assert [cache.get(k) for k in "abce"] == ["A", "B", "C", None] and cache.bytes == 90
+
+
 def test_raw_frames_keep_their_demosaiced_integer_levels(tmp_path):
     from polargs_plugin.data.imageio_utils import write_png
     from polargs_plugin.data.polar_folder import _stokes_from_raw

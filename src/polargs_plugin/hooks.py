@@ -121,6 +121,7 @@ class PolarHooks:
         self._densifier: Any = None
         self._pending_state: dict[str, Any] | None = None
         # per-view constants of L_ref, built from the maps when first used, kept within a budget
+        # when every view's fit (BytesLRU's cycle)
         self._reflective = BytesLRU(MEMORY_BUDGET)
         self._warned: set[tuple[str, str, str]] = set()  # (kind, view name, source): warn once
         self._shapes: dict[str, tuple[int, int]] = {}
@@ -147,9 +148,11 @@ class PolarHooks:
             self._check_physics(view)
         self._shapes = {view.name: (view.height, view.width) for view in views}
         self._reflective.clear()
+        self._reflective.set_cycle(len(views))
         self.maps = MapsStore(self.config.cache_dir)
         for view in views:
             self.maps.prepare(view, self.config, partial(self._compute_maps, view))
+        self.maps.cycle_through(len(views))
         if self.config.densify.enabled:
             from polargs_plugin.densify.densifier import PolarDensifier
 

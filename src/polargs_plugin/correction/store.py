@@ -134,12 +134,27 @@ class BytesLRU:
 
     Args:
         budget: the most bytes held; an entry larger than that is not kept.
+        cycle: the number of keys the entries cycle through (e.g. the training views, visited in
+            a random order), or None (unknown). An entry is then kept only when ``cycle`` entries
+            of its size fit in the budget: a cache holding a few of many views in a random order
+            would rarely hit and only hold memory (real-size images), while one holding every view
+            always hits (small images).
     """
 
-    def __init__(self, budget: int):
+    def __init__(self, budget: int, cycle: int | None = None):
         self.budget = budget
         self._entries: OrderedDict[Any, tuple[Any, int]] = OrderedDict()
         self.bytes = 0
+        self.cycle = cycle
+
+    def set_cycle(self, cycle: int | None) -> None:
+        """Set :attr:`cycle`, dropping what it no longer lets the cache keep."""
+        self.cycle = cycle
+        for key in [k for k, (_, size) in self._entries.items() if not self._fits(size)]:
+            self.discard(key)
+
+    def _fits(self, size: int) -> bool:
+        return size * (self.cycle or 1) <= self.budget
 
     def get(self, key: Any) -> Any:
         """The entry of ``key`` (now the most recently used), or None."""
@@ -149,9 +164,10 @@ class BytesLRU:
         return self._entries[key][0]
 
     def put(self, key: Any, value: Any, size: int) -> None:
-        """Keep ``value`` (``size`` bytes), dropping the least recently used entries beyond the budget."""
+        """Keep ``value`` (``size`` bytes), dropping the least recently used entries beyond the
+        budget; nothing is kept when the entry does not fit (see ``cycle``)."""
         self.discard(key)
-        if size > self.budget:
+        if not self._fits(size):
             return
         self._entries[key] = (value, size)
         self.bytes += size
@@ -241,6 +257,11 @@ class MapsStore(Mapping[str, PolarMaps]):
 
     def __len__(self) -> int:
         return len(self._devices)
+
+    def cycle_through(self, count: int) -> None:
+        """The views are used in turns of ``count`` (a training's random order): keep compact maps
+        read from the folder in memory only when all of them fit in the budget."""
+        self._recent.set_cycle(count)
 
     def sequence(self, names: Sequence[str]) -> Sequence[PolarMaps]:
         """The maps of ``names`` as a sequence that decodes an entry when it is indexed."""

@@ -200,7 +200,7 @@ class PolarDensifier:
             render = render_fn(view)
         dev = render.depth.device
         src_views = [self.views[j] for j in src]
-        ref_maps = self.maps.get(view.name)
+        ref_polar = self._polar(view.name, dev)  # decoded once: the filter below reads it again
         mask = view.mask.to(dev) if (cfg.use_view_mask and view.mask is not None) else None
         init_valid = render.alpha > cfg.alpha_threshold
         if not (init_valid & (render.depth > 0)).any():
@@ -211,11 +211,10 @@ class PolarDensifier:
             torch.stack([v.image.to(dev) for v in src_views]),
             torch.stack([v.K for v in src_views]), torch.stack([v.world_to_camera for v in src_views]),
             render.depth, render.normal,
-            aolp=ref_maps.aolp.to(dev) if ref_maps is not None else None,
-            dolp=ref_maps.dolp.to(dev) if ref_maps is not None else None,
+            aolp=ref_polar[0] if ref_polar is not None else None,
+            dolp=ref_polar[1] if ref_polar is not None else None,
             mask=mask, init_valid=init_valid, config=cfg.patchmatch, generator=gen,
         )
-        del ref_maps
         photometric_ok = (result.photometric_cost <= cfg.filters.max_photometric_cost) & (result.depth > 0)
         depth = torch.where(photometric_ok, result.depth, torch.zeros_like(result.depth))
 
@@ -230,15 +229,15 @@ class PolarDensifier:
                                            None if kept is None else kept[2]))
             src_normals.append(r.normal)
             del r, kept
-        all_maps = [self.maps.get(v.name) for v in [view] + src_views]
-        polar = all(m is not None for m in all_maps)
+        all_polar = [ref_polar] + [self._polar(v.name, dev) for v in src_views]
+        polar = all(m is not None for m in all_polar)
         keep = consistency_filter(
             [depth] + src_depths, [result.normal] + src_normals, [view] + src_views,
-            aolps=[m.aolp.to(dev) for m in all_maps] if polar else None,
-            dolps=[m.dolp.to(dev) for m in all_maps] if polar else None,
+            aolps=[m[0] for m in all_polar] if polar else None,
+            dolps=[m[1] for m in all_polar] if polar else None,
             config=cfg.filters, reference=0,
         )
-        del all_maps, src_depths, src_normals
+        del ref_polar, all_polar, src_depths, src_normals
         self._states.put(view.name, depth, result.normal, keep)
         self.calls += 1
 
@@ -259,6 +258,12 @@ class PolarDensifier:
                            ("seeds", seeds.sum()), ("added", len(new))):
             self.stats[key] += int(count)
         return new if len(new) > 0 else None
+
+    def _polar(self, name: str, device: torch.device) -> tuple[Tensor, Tensor] | None:
+        """The view's (AoLP, DoLP) maps on ``device``, or None (no maps); the rest of its maps
+        is not kept."""
+        maps = self.maps.get(name)
+        return None if maps is None else (maps.aolp.to(device), maps.dolp.to(device))
 
     def _device_generator(self, device: torch.device) -> torch.Generator:
         """A generator on ``device`` seeded from the CPU stream (so runs are reproducible)."""
