@@ -12,11 +12,11 @@ Array conventions (all C-contiguous numpy views of the torch tensors):
 - ``src`` (S, Hs + 4, Ws + 4) float32 source grey images with a 2-pixel zero border;
   ``A`` (S, 3, 3) = ``K_s R K_ref^-1``, ``b`` (S, 3) = ``K_s t`` (float64);
 - ``rays`` (3, H, W) ``K_ref^-1 p~``; ``kinv`` (3, 3) float64;
-- ``ref_w`` (P, Q) normalised bilateral weights, ``ref_wc`` (P, Q) ``w (r - mean)``, ``ref_var``
-  (P,) on the window grid ``range(-radius, radius + 1, step)`` squared, rows outer, one row per
-  pixel of the list given to ``reference_kernel`` (the search's: its active pixels, so that a
-  masked object's background costs no memory); ``rows`` (H * W,) int32 the row of each flat
-  pixel (-1: none);
+- ``gray`` (H, W) float32 reference grey image; its bilateral windows on the grid
+  ``range(-radius, radius + 1, step)`` squared (Q samples, rows outer) are built per pixel inside
+  the search kernels (``_reference_window``: normalised weights ``ref_w`` (Q,), ``w (r - mean)``
+  ``ref_wc`` (Q,), the variance) instead of being stored, which would take 2 Q floats a pixel;
+  ``reference_kernel`` gives them for every pixel as (P, Q) arrays (``ncc_kernel``'s input);
 - ``phi`` (H, W) AoLP, ``omega`` (H, W) DoLP weight; ``params`` float64
   ``[lambda1 (0 = off), tau, lambda2 (0 = off), perspective (0/1), lo, hi]``;
 - state ``depth`` (H, W), ``normal`` (3, H, W), ``photo`` (H, W), ``total`` (H, W) float32;
@@ -45,52 +45,61 @@ _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _OPTS = dict(fastmath=_FAST, cache=True, nogil=True)
 
 
-@nb.njit(parallel=True, **_OPTS)
-def reference_kernel(gray, pixels, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc, ref_var):
-    """Bilateral weights ``ref_w``, ``w (r - mean)`` and variance of the reference windows at the
-    flat pixels ``pixels`` (row i: pixel ``pixels[i]``).
+@nb.njit(**_OPTS)
+def _reference_window(gray, y, x, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc):
+    """Bilateral weights ``ref_w`` (Q,), ``w (r - mean)`` ``ref_wc`` (Q,) of the reference window
+    at pixel (y, x), written in place; returns its variance (float32 precision, as stored).
 
     Same definition as ncc.reference_windows (replicated border, weights normalised to sum to 1).
     """
     h, w = gray.shape
     n1 = (2 * radius) // step + 1
-    for i in nb.prange(pixels.shape[0]):
-        y, x = pixels[i] // w, pixels[i] % w
-        centre = gray[y, x]
-        total = 0.0
-        q = 0
-        for jy in range(n1):
-            oy = -radius + jy * step
-            yy = min(max(y + oy, 0), h - 1)
-            for jx in range(n1):
-                ox = -radius + jx * step
-                d = gray[yy, min(max(x + ox, 0), w - 1)] - centre
-                wt = math.exp(-(ox * ox + oy * oy) / (2.0 * sigma_spatial**2) - d * d / (2.0 * sigma_color**2))
-                ref_w[i, q] = wt
-                total += wt
-                q += 1
-        mean = 0.0
-        sq = 0.0
-        for jy in range(n1):
-            yy = min(max(y - radius + jy * step, 0), h - 1)
-            for jx in range(n1):
-                q = jy * n1 + jx
-                r = gray[yy, min(max(x - radius + jx * step, 0), w - 1)]
-                wt = ref_w[i, q] / total
-                ref_w[i, q] = wt
-                mean += wt * r
-                sq += wt * r * r
-        ref_var[i] = sq - mean * mean
-        for jy in range(n1):
-            yy = min(max(y - radius + jy * step, 0), h - 1)
-            for jx in range(n1):
-                q = jy * n1 + jx
-                ref_wc[i, q] = ref_w[i, q] * (gray[yy, min(max(x - radius + jx * step, 0), w - 1)] - mean)
+    centre = gray[y, x]
+    total = 0.0
+    q = 0
+    for jy in range(n1):
+        oy = -radius + jy * step
+        yy = min(max(y + oy, 0), h - 1)
+        for jx in range(n1):
+            ox = -radius + jx * step
+            d = gray[yy, min(max(x + ox, 0), w - 1)] - centre
+            wt = math.exp(-(ox * ox + oy * oy) / (2.0 * sigma_spatial**2) - d * d / (2.0 * sigma_color**2))
+            ref_w[q] = wt
+            total += wt
+            q += 1
+    mean = 0.0
+    sq = 0.0
+    for jy in range(n1):
+        yy = min(max(y - radius + jy * step, 0), h - 1)
+        for jx in range(n1):
+            q = jy * n1 + jx
+            r = gray[yy, min(max(x - radius + jx * step, 0), w - 1)]
+            wt = ref_w[q] / total
+            ref_w[q] = wt
+            mean += wt * r
+            sq += wt * r * r
+    for jy in range(n1):
+        yy = min(max(y - radius + jy * step, 0), h - 1)
+        for jx in range(n1):
+            q = jy * n1 + jx
+            ref_wc[q] = ref_w[q] * (gray[yy, min(max(x - radius + jx * step, 0), w - 1)] - mean)
+    return np.float64(np.float32(sq - mean * mean))
+
+
+@nb.njit(parallel=True, **_OPTS)
+def reference_kernel(gray, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc, ref_var):
+    """Bilateral weights ``ref_w`` (P, Q), ``w (r - mean)`` and variance of every reference window
+    (:func:`_reference_window` at each of the P = H * W pixels)."""
+    h, w = gray.shape
+    for i in nb.prange(h * w):
+        ref_var[i] = _reference_window(gray, i // w, i % w, radius, step, sigma_spatial, sigma_color,
+                                       ref_w[i], ref_wc[i])
 
 
 @nb.njit(**_OPTS)
-def _ncc(src, s, hx, hy, hz, cxx, cxy, cxz, cyx, cyy, cyz, radius, step, n1, ref_w, ref_wc, i, rv):
-    """Bilateral NCC cost of the homography ``(H p~, H e_x, H e_y)`` against source ``s`` at pixel i."""
+def _ncc(src, s, hx, hy, hz, cxx, cxy, cxz, cyx, cyy, cyz, radius, step, n1, ref_w, ref_wc, rv):
+    """Bilateral NCC cost of the homography ``(H p~, H e_x, H e_y)`` against source ``s``, for the
+    reference window ``ref_w``, ``ref_wc`` (Q,) of variance ``rv``."""
     width = src.shape[2] - 4
     height = src.shape[1] - 4
     # z is affine in the offset, so its minimum over the window is at a corner sample
@@ -122,10 +131,10 @@ def _ncc(src, s, hx, hy, hz, cxx, cxy, cxz, cyx, cyy, cyz, radius, step, n1, ref
             top = a + fx * (src[s, y0, x0 + 1] - a)
             bot = c + fx * (src[s, y0 + 1, x0 + 1] - c)
             val = top + fy * (bot - top)
-            wv = ref_w[i, q] * val
+            wv = ref_w[q] * val
             sw += wv
             sww += wv * val
-            swr += ref_wc[i, q] * val
+            swr += ref_wc[q] * val
             q += 1
             rx += step * cxx
             ry += step * cxy
@@ -157,14 +166,15 @@ def ncc_kernel(src, A, b, pix, invd, mxy, radius, step, ref_w, ref_wc, ref_var, 
                     src, s, ax + b[s, 0] * k, ay + b[s, 1] * k, az + b[s, 2] * k,
                     A[s, 0, 0] + b[s, 0] * mx, A[s, 1, 0] + b[s, 1] * mx, A[s, 2, 0] + b[s, 2] * mx,
                     A[s, 0, 1] + b[s, 0] * my, A[s, 1, 1] + b[s, 1] * my, A[s, 2, 1] + b[s, 2] * my,
-                    radius, step, n1, ref_w, ref_wc, i, ref_var[i],
+                    radius, step, n1, ref_w[i], ref_wc[i], ref_var[i],
                 )
 
 
 @nb.njit(**_OPTS)
 def _photometric(src, A, b, kinv, ax, ay, az, vx, vy, vz, d, nx, ny, nz, radius, step, n1, top_k,
-                 ref_w, ref_wc, i, rv, scratch):
-    """S_c of plane (d, n) at pixel i: mean of the ``top_k`` lowest per-source costs."""
+                 ref_w, ref_wc, rv, scratch):
+    """S_c of plane (d, n) at a pixel of reference window ``ref_w``, ``ref_wc`` (Q,) and variance
+    ``rv``: mean of the ``top_k`` lowest per-source costs."""
     num_s = src.shape[0]
     dpl = -d * (nx * vx + ny * vy + nz * vz)
     # m = -K^-T n / d_plane; only its x, y components enter the homography
@@ -176,7 +186,7 @@ def _photometric(src, A, b, kinv, ax, ay, az, vx, vy, vz, d, nx, ny, nz, radius,
             src, s, ax[s] + b[s, 0] * k, ay[s] + b[s, 1] * k, az[s] + b[s, 2] * k,
             A[s, 0, 0] + b[s, 0] * mx, A[s, 1, 0] + b[s, 1] * mx, A[s, 2, 0] + b[s, 2] * mx,
             A[s, 0, 1] + b[s, 0] * my, A[s, 1, 1] + b[s, 1] * my, A[s, 2, 1] + b[s, 2] * my,
-            radius, step, n1, ref_w, ref_wc, i, rv,
+            radius, step, n1, ref_w, ref_wc, rv,
         )
         j = s  # insertion sort: scratch[:s + 1] ascending
         while j > 0 and scratch[j - 1] > c:
@@ -252,8 +262,8 @@ def _pixel_setup(src, A, x, y):
 
 
 @nb.njit(parallel=True, **_OPTS)
-def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref_wc,
-                ref_var, rows, phi, omega, params, active, depth, out_depth, out_normal, out_photo, out_total):
+def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k, gray, sigma_spatial,
+                sigma_color, phi, omega, params, active, depth, out_depth, out_normal, out_photo, out_total):
     """Score the M initial hypotheses ``cand_d`` (M, H, W), ``cand_n`` (M, 3, H, W) at ``idx``.
 
     Reads ``depth`` (for S_nd), writes the cheapest admissible hypothesis into the ``out_*``
@@ -270,8 +280,9 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
         i = idx[j]
         y, x = i // w, i % w
         vx, vy, vz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
-        row = rows[i]
-        rv = ref_var[row]
+        # the reference window, built per pixel and call rather than stored: 2 Q floats a pixel
+        ref_w, ref_wc = np.empty(n1 * n1, np.float32), np.empty(n1 * n1, np.float32)
+        rv = _reference_window(gray, y, x, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc)
         textured = rv >= _MIN_VAR
         ax, ay, az = _pixel_setup(src, A, x, y)
         scratch = np.empty(num_s)
@@ -287,7 +298,7 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
             c_photo = _MAX_COST
             if textured:
                 c_photo = _photometric(src, A, b, kinv, ax, ay, az, vx, vy, vz, d, nx, ny, nz, radius,
-                                       step, n1, top_k, ref_w, ref_wc, row, rv, scratch)
+                                       step, n1, top_k, ref_w, ref_wc, rv, scratch)
                 count += num_s
             c = c_photo + _prior(nx, ny, nz, vx, vy, vz, phi[y, x], omega[y, x], params, has_dg, gx, gy, gz)
             if c < best:
@@ -303,7 +314,7 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
 
 
 @nb.njit(parallel=True, **_OPTS)
-def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref_wc, ref_var, rows, phi,
+def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, gray, sigma_spatial, sigma_color, phi,
                      omega, params, active, dists, rel, ang, uni, noise, depth, normal, photo, total):
     """One checkerboard half-step over the pixels ``idx`` (all of one colour), in place.
 
@@ -322,8 +333,9 @@ def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref
         i = idx[j]
         y, x = i // w, i % w
         vx, vy, vz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
-        row = rows[i]
-        rv = ref_var[row]
+        # the reference window, built per pixel and call rather than stored: 2 Q floats a pixel
+        ref_w, ref_wc = np.empty(n1 * n1, np.float32), np.empty(n1 * n1, np.float32)
+        rv = _reference_window(gray, y, x, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc)
         textured = rv >= _MIN_VAR
         ax, ay, az = _pixel_setup(src, A, x, y)
         scratch = np.empty(num_s)
@@ -366,7 +378,7 @@ def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, ref_w, ref
             c_photo = _MAX_COST
             if textured:
                 c_photo = _photometric(src, A, b, kinv, ax, ay, az, vx, vy, vz, d, nx, ny, nz, radius,
-                                       step, n1, top_k, ref_w, ref_wc, row, rv, scratch)
+                                       step, n1, top_k, ref_w, ref_wc, rv, scratch)
                 count += num_s
             c = c_photo + _prior(nx, ny, nz, vx, vy, vz, phi[y, x], omega[y, x], params, has_dg, gx, gy, gz)
             if c < best:

@@ -473,17 +473,7 @@ class _NumbaSearch:
             raise ValueError(f"unknown azimuth model '{cfg.azimuth_model}' (orthographic, perspective)")
         self.kernels = numba_kernels
         self.evaluations = 0
-        flat = active.reshape(-1)
-        self.all = flat.nonzero().squeeze(-1).numpy()
-        # the reference windows of the active pixels only (a row each): 2 Q floats a pixel
-        num_p, num_q = self.all.shape[0], prob.offsets.shape[0]
-        rows = np.full(prob.h * prob.w, -1, np.int32)
-        rows[self.all] = np.arange(num_p, dtype=np.int32)
-        ref_w, ref_wc = np.empty((num_p, num_q), np.float32), np.empty((num_p, num_q), np.float32)
-        ref_var = np.empty(num_p, np.float32)
         sigma_s = cfg.sigma_spatial if cfg.sigma_spatial > 0 else float(cfg.window_radius)
-        numba_kernels.reference_kernel(_f32(prob.gray), self.all, cfg.window_radius, cfg.window_step, sigma_s,
-                                       cfg.sigma_color, ref_w, ref_wc, ref_var)
         use_aolp = cfg.lambda_aolp > 0 and prob.aolp is not None
         if use_aolp:
             phi = prob.aolp[0]
@@ -494,12 +484,15 @@ class _NumbaSearch:
         self.common = dict(
             src=_f32(F.pad(prob.sources, (2, 2, 2, 2))), A=_f64(prob.A), b=_f64(prob.b),
             kinv=_f64(prob.K_inv), rays=_f32(prob.rays), radius=cfg.window_radius, step=cfg.window_step,
-            top_k=prob.top_k, ref_w=ref_w, ref_wc=ref_wc, ref_var=ref_var, rows=rows, phi=_f32(phi), omega=_f32(omega),
+            top_k=prob.top_k, gray=_f32(prob.gray), sigma_spatial=sigma_s, sigma_color=cfg.sigma_color,
+            phi=_f32(phi), omega=_f32(omega),
             params=np.array([cfg.lambda_aolp if use_aolp else 0.0, cfg.tau, max(cfg.lambda_normal_depth, 0.0),
                              float(cfg.azimuth_model == "perspective"), lo, hi]),
             active=active.contiguous().numpy(),
         )
+        flat = active.reshape(-1)
         self.idx = [(flat & (prob.colour == c)).nonzero().squeeze(-1).numpy() for c in (0, 1)]
+        self.all = flat.nonzero().squeeze(-1).numpy()
         self.dists = np.asarray(cfg.propagation_distances, dtype=np.int64)
 
     def initial(self, state, cand_d: Tensor, cand_n: Tensor) -> None:
