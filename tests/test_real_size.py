@@ -349,6 +349,9 @@ def test_the_estimate_refuses_in_one_line_and_names_the_resolution_that_fits(sce
     # Dense's per-view state (9 bytes a pixel of every view) is in memory only without a maps folder
     on_disk = estimates.estimate_memory(views, train, polar, held=500 << 20, available=None, maps_folder=True)
     assert roomy.peak_bytes - on_disk.peak_bytes == estimates.DENSE_STATE_BYTES_PER_PIXEL * roomy.pixels
+    # a step's and a Dense call's buffers are not held at once: the larger of the two, per pixel of the largest view
+    per_pixel = max(estimates.STEP_BYTES_PER_PIXEL + estimates.HOOKS_BYTES_PER_PIXEL, estimates.DENSE_BYTES_PER_PIXEL)
+    assert on_disk.peak_bytes - on_disk.fixed_bytes - on_disk.image_bytes == per_pixel * 32 * 24
 
 
 def test_a_cuda_training_is_estimated_against_the_gpus_memory(scene_folder, monkeypatch):

@@ -1,9 +1,9 @@
 """Before a training starts: the memory and the time it will take, and whether the memory is there.
 
 :func:`estimate_memory` models a run's peak resident memory from what the process holds once
-the data is read (the compact views) plus what training adds: per-pixel buffers of one step on
-the largest view, Dense's per-view state and one call's buffers, the maps caches and the
-Gaussians. :func:`estimate_time` times a render + backward of the largest view on the model as
+the data is read (the compact views) plus what training adds: the larger of one step's and one
+Dense call's per-pixel buffers on the largest view, Dense's per-view state where it is held in
+memory, the maps caches and the Gaussians. :func:`estimate_time` times a render + backward of the largest view on the model as
 built (the model is left unchanged) and scales it by the schedule. The constants were measured on
 the bundled scenes at the CPU preset (2 threads) at 128x128 to 1224x1024 (docs/real-size.md);
 the estimate is a guide (within about 30 %), the progress bar then shows the measured rate.
@@ -213,8 +213,9 @@ def estimate_memory(views: Sequence[View], train: TrainConfig, polar: PolarConfi
     calls = dense_calls(polar, train.iterations)
     growth = per_step * view_pixels
     if calls:
+        # a Dense call runs after the step's backward (its buffers are free by then): the larger of the two
         state_in_memory = not (polar.cache_dir is not None if maps_folder is None else maps_folder)
-        growth += DENSE_BYTES_PER_PIXEL * view_pixels + DENSE_STATE_BYTES_PER_PIXEL * pixels * state_in_memory
+        growth = max(growth, DENSE_BYTES_PER_PIXEL * view_pixels) + DENSE_STATE_BYTES_PER_PIXEL * pixels * state_in_memory
     cap = train.density.max_gaussians or 3 * train.num_init_points
     appended = calls * polar.densify.max_new_per_call if calls else 0
     fixed = BYTES_PER_GAUSSIAN * (cap + appended) + 2 * MEMORY_BUDGET * (polar is not None)
