@@ -12,7 +12,9 @@ from polargs_plugin.data.scenes import (
     Light,
     Material,
     SceneSpec,
+    Texture,
     build_scene,
+    evaluate_albedo,
     icosphere,
     intrinsics,
     look_at,
@@ -166,6 +168,25 @@ def test_depth_normals_match_analytic_sphere_and_plane(camera):
     # Facing the camera along the pixel ray.
     ray_cam = dirs @ w2c[:3, :3].T
     assert np.all(np.einsum("hwi,hwi->hw", normal, ray_cam)[mask] < 1e-3)
+
+
+def test_checker_on_a_plane_at_a_cell_boundary_has_one_parity_per_cell(camera):
+    # glossy_plane_sphere's floor lies at height 0, a checker cell boundary: the renderer's hit
+    # points (float32 ray distances) are a rounding error above or below it, which must not flip
+    # the cell's colour from pixel to pixel.
+    K, w2c = camera
+    origin, dirs = pixel_grid_rays(K, w2c, SIZE, SIZE)
+    t = (-origin[2] / dirs[..., 2]).astype(np.float32).astype(np.float64)
+    points = (origin + t[..., None] * dirs).reshape(-1, 3)
+    points = points[(t.reshape(-1) > 0) & (np.abs(points[:, :2]) <= 1.5).all(axis=1)]  # the floor's extent
+    assert (points[:, 2] < 0).any() and (points[:, 2] > 0).any()  # rounding on both sides
+    scale = 0.3
+    offsets = points[:, :2] / scale - np.rint(points[:, :2] / scale)
+    inside = (np.abs(offsets) > 1e-3).all(axis=1)  # away from the cells' side boundaries
+    parity = (np.floor(points[inside, 0] / scale) + np.floor(points[inside, 1] / scale)) % 2
+    floor = Material("floor", albedo=(0.5, 0.5, 0.5), texture=Texture("checker", scale, 0.2))
+    albedo = evaluate_albedo(points[inside], floor)
+    np.testing.assert_allclose(albedo[:, 0], np.where(parity == 0, 0.6, 0.4))
 
 
 # --- polarization -------------------------------------------------------------------------------

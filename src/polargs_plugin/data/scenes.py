@@ -307,7 +307,10 @@ def _pattern(points: np.ndarray, texture: Texture) -> np.ndarray:
     if texture.kind == "uniform":
         return np.zeros(points.shape[0])
     if texture.kind == "checker":
-        cells = np.floor(points / texture.scale).astype(np.int64).sum(axis=1)
+        # A surface lying on a cell boundary (a floor at height 0) gets hit points a rounding error
+        # above or below it; the small shift puts them all in one cell, so its parity does not
+        # flicker from pixel to pixel and from view to view.
+        cells = np.floor(points / texture.scale + 1e-4).astype(np.int64).sum(axis=1)
         return np.where(cells % 2 == 0, 1.0, -1.0)
     if texture.kind == "noise":
         waves = 2 * np.pi * _WAVES / texture.scale
