@@ -83,7 +83,9 @@ MASK_KINDS = ("object", "surface")
 #: 2: masks mark the object only by default (was: every surface).
 #: 3: per-view visibility of the object's triangles (visibility.npz); per-material optics
 #: (refractive index, conductors, specular tint) in scene.json. The images did not change.
-GENERATOR_VERSION = 3
+#: 4: a checker texture on a surface lying on a cell boundary (glossy_plane_sphere's floor) keeps
+#: one colour per cell instead of flickering with the hit points' rounding.
+GENERATOR_VERSION = 4
 #: Supported sensor bit depths (angle images are always quantised, as a real sensor's are).
 QUANTIZE_BITS = (8, 16)
 #: A scene size for tests and smoke runs: ``generate_scene(name, **SMALL_SETTINGS)``.
