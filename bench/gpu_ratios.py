@@ -1,5 +1,5 @@
 """CUDA / CPU time ratios of the reference rasterizer (forward + backward), PatchMatch and SSIM,
-measured in one process on the same inputs; prints one JSON line (scripts/gpu_check.sh).
+measured in one process on the same inputs; prints a table, then one JSON line (scripts/gpu_check.sh).
 
     python bench/gpu_ratios.py [--json FILE]
 
@@ -100,6 +100,10 @@ def main() -> int:
         cpu = _timed(make(torch.device("cpu")), torch.device("cpu"))
         cuda = _timed(make(torch.device("cuda")), torch.device("cuda"))
         result[name] = {"cpu_s": round(cpu, 5), "cuda_s": round(cuda, 5), "speedup": round(cpu / cuda, 2)}
+    print(f"{'step':<12}{'CPU s':>10}{'CUDA s':>10}{'CPU / CUDA':>12}")
+    for name in ("rasterizer", "patchmatch", "ssim"):
+        row = result[name]
+        print(f"{name:<12}{row['cpu_s']:>10.4f}{row['cuda_s']:>10.4f}{row['speedup']:>12.2f}")
     line = json.dumps(result)
     print(line)
     if args.json:

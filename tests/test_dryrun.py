@@ -324,6 +324,28 @@ def test_training_parts_import_without_the_optional_packages(module: str) -> Non
     assert done.returncode == 0, done.stderr[-2000:]
 
 
+def test_training_a_scene_folder_with_dense_needs_no_open3d(tmp_path: Path) -> None:
+    """GPU machines often lack open3d: reading a scene folder and training it (Full, with Dense
+    calls) must run without it, OpenEXR and pycolmap; only meshes need open3d."""
+    import json
+    import subprocess
+
+    from polargs_plugin.cli import main
+
+    scene, run = tmp_path / "scene", tmp_path / "run"
+    assert main(["generate", "--scene", "glossy_plane_sphere", "--out", str(scene), "--views", "8", "--size", "48x48"]) == 0
+    config = tmp_path / "dense_early.json"
+    config.write_text(json.dumps({"polar": {"densify": {"start_iter": 4, "end_iter": 8, "interval": 4}}}))
+    block = _BLOCK_OPTIONAL.replace("'kornia', ", "")  # Dense's seeding needs kornia, a required package
+    train = ["train", str(scene), "--out", str(run), "--schedule", "cpu", "--iters", "10", "--config", str(config), "--quiet"]
+    code = block + f"from polargs_plugin.cli import main; sys.exit(main({train!r}))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["iterations"] == 10 and summary["polar"]
+    assert summary["num_gaussians"] > 2000  # the initial cloud plus what the two Dense calls appended
+
+
 def test_gpu_check_reports_clearly_without_a_gpu(tmp_path: Path) -> None:
     import os
     import subprocess

@@ -6,7 +6,8 @@ problem. Every writer is atomic (a temporary file renamed on success).
 
 Formats: PNG/TIFF/JPEG 8 or 16 bit (OpenCV), OpenEXR (the ``OpenEXR`` package, because some
 OpenCV wheels cannot read EXR), Radiance ``.hdr`` (OpenCV, RGBE: about 8 significant bits per
-pixel, shared exponent, no negative values) and ``.npy``.
+pixel, shared exponent, no negative values) and ``.npy``. ``OpenEXR`` is imported only when an
+EXR file is read or written, so reading PNG scenes for training does not need it.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import OpenEXR
 from torch import Tensor
 
 from polargs_plugin.io import PolarInputError, atomic_path
@@ -128,6 +128,8 @@ def read_exr(path: PathLike) -> np.ndarray:
     Channels are taken by name: R, G, B (in that order) if present, else Y, else the single
     channel. Layer prefixes such as ``View.Combined.R`` are accepted.
     """
+    import OpenEXR
+
     path = Path(path)
     _require_file(path)
     try:
@@ -150,6 +152,8 @@ def read_exr(path: PathLike) -> np.ndarray:
 
 def write_exr(path: PathLike, array: np.ndarray) -> Path:
     """Write (H, W, 1|3) float data as a float32 EXR (Y or R, G, B channels), atomically."""
+    import OpenEXR
+
     path = Path(path)
     array = np.asarray(array, dtype=np.float32)
     if array.ndim == 2:

@@ -28,20 +28,26 @@ import json
 import re
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import open3d as o3d
 import torch
 from torch import Tensor
 
 from polargs_plugin.compact import AngleImages, Deferred
 from polargs_plugin.data.imageio_utils import warn_narrow_range
 from polargs_plugin.data.resolution import prepare_view, target_size
-from polargs_plugin.data.synthetic import SyntheticScene, mask_from_ranges, triangle_ranges
 from polargs_plugin.io import PolarInputError, atomic_path, atomic_write
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG
 from polargs_plugin.types import View
+
+if TYPE_CHECKING:
+    # Reading a scene's views for training needs neither: open3d (which has no wheels for every
+    # Python a trainer runs on) is imported only where a mesh is read or written.
+    import open3d as o3d
+
+    from polargs_plugin.data.synthetic import SyntheticScene
 
 __all__ = [
     "FORMAT_NAME",
@@ -170,6 +176,8 @@ class SceneWriter:
     def finish(self, scene: SyntheticScene) -> Path:
         """Write the meshes and the meta of ``scene``, then ``cameras.json`` (last: a folder that
         has it is complete); the folder path."""
+        from polargs_plugin.data.synthetic import triangle_ranges
+
         if self.size is None:
             raise ValueError("the scene has no views")
         write_meshes(scene, self.folder)
@@ -198,6 +206,8 @@ class SceneWriter:
 def write_meshes(scene: SyntheticScene, folder: str | Path) -> None:
     """The scene's whole mesh as ``mesh.ply`` and the object alone as ``gt_mesh.ply`` (the
     evaluation ground truth), each written atomically."""
+    import open3d as o3d
+
     folder = Path(folder)
     for name, (vertices, triangles) in (
         (MESH_FILE, (scene.mesh_vertices, scene.mesh_triangles)),
@@ -475,6 +485,8 @@ def read_gt_mesh(folder: str | Path, object_only: bool = True) -> o3d.geometry.T
     Raises:
         PolarInputError: the file is missing, unreadable or has no triangles.
     """
+    import open3d as o3d
+
     folder = Path(folder)
     path = folder / MESH_FILE
     if object_only and (folder / GT_MESH_FILE).is_file():
@@ -495,6 +507,8 @@ def read_scene(folder: str | Path) -> SyntheticScene:
     Raises:
         PolarInputError: as :func:`read_scene_folder`, or a missing/malformed GT file or meta.
     """
+    from polargs_plugin.data.synthetic import SyntheticScene, mask_from_ranges
+
     folder = Path(folder)
     header = _read_header(folder)
     views = _read_views(folder, header)
