@@ -5,6 +5,7 @@ cameras must match the true ones up to a similarity (COLMAP fixes neither scale 
 """
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -66,9 +67,17 @@ def test_sfm_recovers_cameras_up_to_similarity(tmp_path):
 
     assert find_colmap_model(tmp_path) == tmp_path / "sparse" / "0"
     assert len(views) >= 6
+    _assert_cameras_match(views, true, max_offset=0.05 * 3.2, max_degrees=1.5)
+    for v in views:
+        assert abs(v.K[0, 0].item() / F - 1) < 0.03
+
+
+def _assert_cameras_match(views, true: dict[str, np.ndarray], max_offset: float, max_degrees: float) -> None:
+    """The views' cameras are the true world_to_camera matrices up to a similarity (COLMAP fixes
+    neither scale nor frame): centres within ``max_offset`` after the Umeyama alignment,
+    orientations within ``max_degrees``."""
     centres = np.stack([v.camera_center.numpy() for v in views])
     true_centres = np.stack([-true[v.name][:3, :3].T @ true[v.name][:3, 3] for v in views])
-    # Umeyama similarity aligning the SfM centres to the true ones
     mu, true_mu = centres.mean(0), true_centres.mean(0)
     cov = (true_centres - true_mu).T @ (centres - mu) / len(views)
     U, S, Vt = np.linalg.svd(cov)
@@ -76,12 +85,29 @@ def test_sfm_recovers_cameras_up_to_similarity(tmp_path):
     rotation = U @ D @ Vt
     scale = np.trace(np.diag(S) @ D) / ((centres - mu) ** 2).sum(1).mean()
     aligned = scale * (centres - mu) @ rotation.T + true_mu
-    assert np.abs(aligned - true_centres).max() < 0.05 * 3.2
+    assert np.abs(aligned - true_centres).max() < max_offset
     for v in views:  # camera orientation: R_sfm = R_true @ rotation (world frames differ by it)
-        R_true = true[v.name][:3, :3]
-        residual = R_true @ rotation @ v.world_to_camera.numpy()[:3, :3].T
-        assert math.degrees(math.acos(np.clip((np.trace(residual) - 1) / 2, -1, 1))) < 1.5
-        assert abs(v.K[0, 0].item() / F - 1) < 0.03
+        residual = true[v.name][:3, :3] @ rotation @ v.world_to_camera.numpy()[:3, :3].T
+        assert math.degrees(math.acos(np.clip((np.trace(residual) - 1) / 2, -1, 1))) < max_degrees
+
+
+@pytest.mark.slow
+def test_sfm_registers_generated_raw_frames_of_a_speckled_floor(tmp_path):
+    """Raw colour-polarization frames from the generator (glossy_plane_sphere on a speckle floor)
+    go through pattern detection, demosaicking and SfM to the generator's cameras."""
+    from polargs_plugin.cli import main
+    from polargs_plugin.data.colmap import read_colmap_model
+
+    folder = tmp_path / "raw"
+    assert main(["generate", "--scene", "glossy_plane_sphere", "--out", str(folder), "--views", "12", "--size", "640x512",
+                 "--mosaic", "rgb", "--bits", "16", "--floor-texture", "speckle"]) == 0
+    true = {Path(name).stem: camera.world_to_camera for name, camera in read_colmap_model(folder / "sparse" / "0").items()}
+    (folder / "sparse" / "0").rename(tmp_path / "true_model")  # leave the cameras to SfM
+    info = {}
+    views = read_polar_folder(folder, pattern="auto", sfm=True, info=info)
+    assert info["pattern"] == "rgb" and info["sfm"]
+    assert len(views) == 12
+    _assert_cameras_match(views, true, max_offset=0.02 * 3.0, max_degrees=0.5)
 
 
 def test_sfm_failures_say_how_many_views_it_needs(tmp_path):

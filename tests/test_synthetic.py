@@ -189,6 +189,63 @@ def test_checker_on_a_plane_at_a_cell_boundary_has_one_parity_per_cell(camera):
     np.testing.assert_allclose(albedo[:, 0], np.where(parity == 0, 0.6, 0.4))
 
 
+def test_speckle_value_noise_is_its_lattice_values_at_lattice_points_and_their_mean_halfway():
+    from polargs_plugin.data.scenes import _lattice_values, _value_noise
+
+    rng = np.random.default_rng(4)
+    cells = rng.integers(-50, 50, size=(200, 3))
+    scale = 0.08
+    np.testing.assert_allclose(_value_noise(cells * scale, scale), _lattice_values(cells), atol=1e-12)
+    axis = np.eye(3, dtype=np.int64)[rng.integers(0, 3, 200)]
+    halfway = (cells + 0.5 * axis) * scale  # the smoothstep fade is 1/2 there
+    np.testing.assert_allclose(_value_noise(halfway, scale),
+                               (_lattice_values(cells) + _lattice_values(cells + axis)) / 2, atol=1e-12)
+    values = _lattice_values(rng.integers(-10**6, 10**6, size=(20000, 3)))
+    assert -1 <= values.min() and values.max() < 1 and abs(values.mean()) < 0.03 and 0.5 < values.std() < 0.65
+
+
+def test_speckle_texture_is_continuous_and_varies_at_its_scale():
+    from polargs_plugin.data.scenes import _pattern
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-1, 1, (5000, 3))
+    texture = Texture("speckle", 0.08, 0.6)
+    pattern = _pattern(points, texture)
+    np.testing.assert_array_equal(pattern, _pattern(points.copy(), texture))  # a function of the point only
+    assert 0.3 < pattern.std() < 0.6
+    near = _pattern(points + 1e-4 * _unit_rows(rng, 5000), texture)
+    far = _pattern(points + 0.08 * _unit_rows(rng, 5000), texture)
+    assert np.abs(near - pattern).max() < 0.02  # continuous: no jumps between cells
+    assert np.abs(far - pattern).mean() > 0.3  # a cell away, the value is another
+
+
+def _unit_rows(rng, n):
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_floor_texture_replaces_the_floor_material_only():
+    from polargs_plugin.data.family import family_scene, family_settings
+    from polargs_plugin.data.scenes import FLOOR_TEXTURES, build_scene, with_floor_texture
+
+    spec = build_scene("glossy_plane_sphere")
+    speckled = with_floor_texture(spec, "speckle")
+    floor = int(np.unique(spec.triangle_material[~spec.object_triangles])[0])
+    for i, (before, after) in enumerate(zip(spec.materials, speckled.materials)):
+        assert after.texture == (FLOOR_TEXTURES["speckle"] if i == floor else before.texture)
+        assert (after.albedo, after.specular) == (before.albedo, before.specular)
+    with pytest.raises(ValueError, match="shiny_torus has no floor"):
+        with_floor_texture(build_scene("shiny_torus"), "speckle")
+    with pytest.raises(ValueError, match="one of uniform, checker, speckle"):
+        with_floor_texture(spec, "marble")
+    seed = next(k for k in range(100) if family_settings(k).floor)
+    family = family_scene(seed).spec
+    textured = with_floor_texture(family, "uniform")
+    changed = [i for i, (a, b) in enumerate(zip(family.materials, textured.materials)) if a != b]
+    assert changed and all(not family.object_triangles[family.triangle_material == i].any() for i in changed)
+
+
+
 # --- polarization -------------------------------------------------------------------------------
 
 

@@ -111,3 +111,40 @@ def test_generate_refuses_a_non_empty_folder_and_overwrite_replaces_the_scene(tm
     (other / "mine.txt").write_text("keep")
     assert main(["generate", "--scene", "shiny_torus", "--out", str(other), "--small", "--overwrite"]) == 2
     assert "not" in capsys.readouterr().err and (other / "mine.txt").read_text() == "keep"
+
+
+def test_floor_texture_speckles_the_floor_and_is_refused_for_a_scene_without_one(tmp_path, capsys):
+    import json
+
+    from polargs_plugin.data.scene_format import read_scene
+    from polargs_plugin.data.scenes import FLOOR_TEXTURES, Material, evaluate_albedo
+
+    plain, speckled = tmp_path / "plain", tmp_path / "speckled"
+    for out, extra in ((plain, []), (speckled, ["--floor-texture", "speckle"])):
+        assert main(["generate", "--scene", "glossy_plane_sphere", "--out", str(out), "--views", "2", "--size", "96x96",
+                     "--noise", "0", "--mask", "surface"] + extra) == 0
+    kinds = [m["texture"]["kind"] for m in json.loads((speckled / "scene.json").read_text())["materials"]]
+    assert kinds == ["uniform", "speckle"]
+    a, b = read_scene(plain), read_scene(speckled)
+    for view, diffuse_a, diffuse_b in zip(a.views, a.diffuse_gt, b.diffuse_gt):
+        depth = view.depth_gt[0].numpy().astype(np.float64)
+        v, u = np.mgrid[0:96, 0:96] + 0.5
+        rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(view.K.numpy()).T
+        w2c = view.world_to_camera.numpy()
+        points = (rays * depth[..., None] - w2c[:3, 3]) @ w2c[:3, :3]  # world points of the GT depth
+        floor = (depth > 0) & (np.abs(points[..., 2]) < 1e-3) & (diffuse_a[0].numpy() > 0.02)
+        assert floor.mean() > 0.2
+        # Same lights and shading: the floor's diffuse colour changes by the ratio of the albedos.
+        albedo = {kind: evaluate_albedo(points[floor], Material("floor", (1.0, 1.0, 1.0), FLOOR_TEXTURES[kind]))[:, 0]
+                  for kind in ("checker", "speckle")}
+        ratio = diffuse_b[0].numpy()[floor] / diffuse_a[0].numpy()[floor]
+        error = np.abs(ratio / (albedo["speckle"] / albedo["checker"]) - 1)
+        assert np.median(error) < 1e-3 and np.quantile(error, 0.98) < 0.02
+        assert np.std(albedo["speckle"]) > 1.5 * np.std(albedo["checker"])  # about 0.27-0.3 against 0.15
+        sphere = (depth > 0) & (points[..., 2] > 0.01)
+        assert torch.equal(diffuse_a[:, torch.from_numpy(sphere)], diffuse_b[:, torch.from_numpy(sphere)])
+    capsys.readouterr()
+    out = tmp_path / "torus"
+    assert main(["generate", "--scene", "shiny_torus", "--out", str(out), "--small", "--floor-texture", "speckle"]) == 2
+    assert capsys.readouterr().err.strip() == "error: --floor-texture: scene shiny_torus has no floor to texture"
+    assert not out.exists()

@@ -12,6 +12,8 @@ _EPILOG = """examples:
   polargs generate --scene bumpy_mixed --out scenes/bumpy --views 36 --size 160x120 --pictures
   polargs generate --scene shiny_torus --out out/torus --small      # 8 views of 48x48, for tests
   polargs generate --scene bumpy_mixed --out raw36 --views 36 --size 2448x2048 --mosaic rgb --bits 16 --no-cameras
+  polargs generate --scene glossy_plane_sphere --out raw-sfm --views 36 --size 2448x2048 --mosaic rgb --bits 16 \
+      --no-cameras --floor-texture speckle                           # raw frames SfM can register
   polargs generate --scene family --seed 17 --out scenes/family-17  # a scene of the procedural family
 
 --scene family renders the family's scene of --seed (shape, materials, lights, exposure, noise,
@@ -34,6 +36,7 @@ so --out holds a whole scene or nothing.
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``generate`` subcommand."""
     from polargs_plugin.data.family import FAMILY
+    from polargs_plugin.data.scenes import FLOOR_TEXTURES
     from polargs_plugin.data.synthetic import MASK_KINDS, SCENE_NAMES
     from polargs_plugin.service.scenes import EXPORTS
 
@@ -72,6 +75,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="write raw sensor frames instead: a polar folder with raw/<view>.png (rgb: IMX250MYR colour "
                         "polarization mosaic; mono: IMX250MZR), masks/, the GT meshes and the cameras in sparse/0. --size "
                         "is the frame's size (2448x2048 for the IMX250: 1224x1024 per polarizer angle)")
+    parser.add_argument("--floor-texture", choices=FLOOR_TEXTURES, default=None,
+                        help="replace the texture of the scene's floor (glossy_plane_sphere; family seeds with a floor): "
+                        "uniform, checker (glossy_plane_sphere's own) or speckle (a granite-like mat whose corners "
+                        "let SfM register the views; default: the scene's own)")
     parser.add_argument("--no-cameras", action="store_true",
                         help="with --mosaic: leave out the COLMAP model sparse/0 (for `polargs train --sfm`)")
     parser.set_defaults(func=run)
@@ -90,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
         raise PolarInputError("--no-cameras", "only with --mosaic (a scene folder always holds its cameras)")
     request = SceneRequest(args.scene, views=args.views, width=width, height=height, seed=args.seed,
                            noise_std=args.noise, bits=args.bits, refractive_index=args.ior, mask=args.mask,
-                           pictures=args.pictures, mosaic=args.mosaic, cameras=not args.no_cameras)
+                           pictures=args.pictures, mosaic=args.mosaic, cameras=not args.no_cameras,
+                           floor_texture=args.floor_texture)
     made = generate_scene_folder(request, args.out, overwrite=args.overwrite, progress=True, export=args.export)
     stats, meta = made.statistics, made.meta
     print(f"scene       {made.name}: {meta['description']}")

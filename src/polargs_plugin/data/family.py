@@ -586,6 +586,7 @@ def generate_family_scene_views(
     *,
     mask: str = "object",
     progress: bool = False,
+    floor_texture: str | None = None,
 ) -> Iterator["SyntheticScene"]:
     """:func:`generate_family_scene` one view at a time (as
     :func:`~polargs_plugin.data.synthetic.generate_scene_views`); arguments as there."""
@@ -597,6 +598,7 @@ def generate_family_scene_views(
     described = drawn.describe()
     for part in generate_scene_views(drawn.spec, num_views=num_views or settings.num_views, width=width, height=height,
                                      seed=int(seed), noise_std=settings.noise_std if noise_std is None else noise_std,
-                                     quantize_bits=quantize_bits, mask=mask, progress=progress):
+                                     quantize_bits=quantize_bits, mask=mask, progress=progress,
+                                     floor_texture=floor_texture):
         part.meta["family"] = described
         yield part

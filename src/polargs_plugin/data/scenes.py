@@ -20,7 +20,7 @@ Scenes (each chosen to be hard for photometric 3D Gaussian Splatting, as targete
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -45,6 +45,8 @@ __all__ = [
     "CAMERA_LAYOUTS",
     "intrinsics",
     "evaluate_albedo",
+    "FLOOR_TEXTURES",
+    "with_floor_texture",
 ]
 
 
@@ -53,8 +55,10 @@ class Texture:
     """Procedural albedo modulation evaluated at the 3D hit point (so it is multi-view consistent).
 
     Attributes:
-        kind: ``"uniform"`` (textureless), ``"checker"`` (3D checkerboard of cell ``scale``) or
-            ``"noise"`` (sum of fixed 3D sinusoids with wavelength about ``scale``).
+        kind: ``"uniform"`` (textureless), ``"checker"`` (3D checkerboard of cell ``scale``),
+            ``"noise"`` (sum of fixed 3D sinusoids with wavelength about ``scale``) or
+            ``"speckle"`` (3D value noise of cell ``scale`` plus two finer octaves: irregular blobs
+            with corners at several scales, what feature matchers such as SfM's need).
         scale: spatial period in world units.
         amplitude: relative albedo variation in [0, 1]; albedo * (1 + amplitude * pattern), with
             pattern in [-1, 1].
@@ -302,6 +306,34 @@ _WAVES = np.array(
 _PHASES = np.array([0.3, 1.7, 4.1, 2.6, 5.2])
 
 
+# Odd multipliers of the lattice hash of the "speckle" pattern (large primes, as in spatial hashing).
+_HASH = np.array([73856093, 19349663, 83492791], dtype=np.int64)
+_SPECKLE_OCTAVES = 3
+
+
+def _lattice_values(cells: np.ndarray) -> np.ndarray:
+    """A fixed pseudo-random value in [-1, 1) for each integer lattice point (..., 3)."""
+    h = np.bitwise_xor.reduce(cells * _HASH, axis=-1) & 0xFFFFFFFF
+    h = (h * 2654435761) & 0xFFFFFFFF  # Knuth's multiplicative mix spreads nearby cells apart
+    h ^= h >> 15
+    return h.astype(np.float64) / 2**31 - 1.0
+
+
+def _value_noise(points: np.ndarray, scale: float) -> np.ndarray:
+    """(N,) trilinearly interpolated lattice values of cell ``scale`` with a smoothstep fade."""
+    grid = points / scale
+    base = np.floor(grid)
+    t = grid - base
+    t = t * t * (3.0 - 2.0 * t)
+    cells = base.astype(np.int64)
+    total = np.zeros(points.shape[0])
+    for corner in np.ndindex(2, 2, 2):
+        offset = np.array(corner)
+        weight = np.prod(np.where(offset == 1, t, 1.0 - t), axis=1)
+        total += weight * _lattice_values(cells + offset)
+    return total
+
+
 def _pattern(points: np.ndarray, texture: Texture) -> np.ndarray:
     """(N,) pattern in [-1, 1] at world points (N, 3)."""
     if texture.kind == "uniform":
@@ -315,6 +347,9 @@ def _pattern(points: np.ndarray, texture: Texture) -> np.ndarray:
     if texture.kind == "noise":
         waves = 2 * np.pi * _WAVES / texture.scale
         return np.sin(points @ waves.T + _PHASES).mean(axis=1) * (5 / 3)  # roughly unit range
+    if texture.kind == "speckle":
+        octaves = [0.5**k * _value_noise(points, texture.scale * 0.5**k) for k in range(_SPECKLE_OCTAVES)]
+        return np.sum(octaves, axis=0)  # std about 0.45; evaluate_albedo clips the rare |values| > 1
     raise ValueError(f"unknown texture kind {texture.kind!r}")
 
 
@@ -323,6 +358,35 @@ def evaluate_albedo(points: np.ndarray, material: Material) -> np.ndarray:
     pattern = np.clip(_pattern(points, material.texture), -1.0, 1.0)
     factor = 1.0 + material.texture.amplitude * pattern
     return np.asarray(material.albedo)[None, :] * factor[:, None]
+
+
+#: What ``with_floor_texture`` (``polargs generate --floor-texture``) puts on a scene's floor:
+#: ``uniform`` (textureless), ``checker`` (glossy_plane_sphere's own: 0.3-unit cells, 15 %
+#: contrast) or ``speckle`` (a granite-like mat: 0.08-unit blobs and two finer octaves at 60 %
+#: contrast, enough corners for SfM to register views that see the floor).
+FLOOR_TEXTURES: dict[str, Texture] = {
+    "uniform": Texture(),
+    "checker": Texture("checker", 0.3, 0.15),
+    "speckle": Texture("speckle", 0.08, 0.6),
+}
+
+
+def with_floor_texture(spec: SceneSpec, kind: str) -> SceneSpec:
+    """``spec`` with :data:`FLOOR_TEXTURES` ``[kind]`` on its floor: every material that only
+    supporting triangles (``object_triangles`` False) use.
+
+    Raises:
+        ValueError: an unknown ``kind``, or a scene without a floor.
+    """
+    if kind not in FLOOR_TEXTURES:
+        raise ValueError(f"floor texture must be one of {', '.join(FLOOR_TEXTURES)}, got {kind!r}")
+    support = np.zeros(len(spec.triangle_material), bool) if spec.object_triangles is None else ~spec.object_triangles
+    floor = set(np.unique(spec.triangle_material[support]).tolist()) - set(
+        np.unique(spec.triangle_material[~support]).tolist())
+    if not floor:
+        raise ValueError(f"scene {spec.name} has no floor to texture")
+    materials = tuple(replace(m, texture=FLOOR_TEXTURES[kind]) if i in floor else m for i, m in enumerate(spec.materials))
+    return replace(spec, materials=materials, description=f"{spec.description}; {kind} floor")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -421,7 +485,7 @@ def _glossy_plane_sphere() -> SceneSpec:
         triangle_material=mats,
         materials=(
             Material("glossy_red", albedo=(0.55, 0.12, 0.10), specular=0.9, shininess=80.0),
-            Material("matte_floor", albedo=(0.42, 0.40, 0.36), texture=Texture("checker", 0.3, 0.15), specular=0.03, shininess=8.0),
+            Material("matte_floor", albedo=(0.42, 0.40, 0.36), texture=FLOOR_TEXTURES["checker"], specular=0.03, shininess=8.0),
         ),
         lights=(
             Light("directional", _unit((0.5, -0.4, 0.75)), (0.75, 0.75, 0.72)),

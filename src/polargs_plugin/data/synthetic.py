@@ -47,6 +47,7 @@ from polargs_plugin.data.scenes import (
     evaluate_albedo,
     intrinsics,
     scene_cameras,
+    with_floor_texture,
 )
 from polargs_plugin.data.visibility import triangle_visibility
 from polargs_plugin.optics.azimuth import normal_azimuth, pixel_rays
@@ -508,15 +509,20 @@ def generate_scene_views(
     highlight_threshold: float = 0.1,
     mask: str = "object",
     progress: bool = False,
+    floor_texture: str | None = None,
 ) -> Iterator[SyntheticScene]:
     """:func:`generate_scene` one view at a time: each item is the scene (mesh, meta) holding
     only the next view, so a writer can store it before the next is rendered. Arguments as
-    :func:`generate_scene`, whose views are these, in order."""
+    :func:`generate_scene`, whose views are these, in order; ``floor_texture``, a key of
+    :data:`~polargs_plugin.data.scenes.FLOOR_TEXTURES`, replaces the floor's texture (None: the
+    scene's own; ValueError for a scene without a floor)."""
     if num_views < 1 or width < 1 or height < 1:
         raise ValueError(f"need num_views, width, height >= 1, got {num_views}, {width}, {height}")
     if mask not in MASK_KINDS:
         raise ValueError(f"mask must be one of {', '.join(MASK_KINDS)}, got {mask!r}")
     spec = name if isinstance(name, SceneSpec) else build_scene(name)
+    if floor_texture is not None:
+        spec = with_floor_texture(spec, floor_texture)
     renderer = SceneRenderer(spec, refractive_index, shadows)
     # Field of view is horizontal; keep the object's pixel size independent of the aspect ratio.
     K = intrinsics(width, height, spec.fov_deg)

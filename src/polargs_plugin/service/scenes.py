@@ -54,6 +54,8 @@ class SceneRequest:
             ``sparse/0``. The frame is the rendered size (a 2448x2048 frame holds 1224x1024 per
             polarizer angle). None (default): a scene folder.
         cameras: with ``mosaic``, write the COLMAP model (default True; False leaves it to SfM).
+        floor_texture: a key of :data:`~polargs_plugin.data.scenes.FLOOR_TEXTURES` for the floor
+            of a scene that has one (``speckle`` gives SfM features); None: the scene's own.
     """
 
     scene: str
@@ -68,6 +70,7 @@ class SceneRequest:
     pictures: bool = False
     mosaic: Literal["mono", "rgb"] | None = None
     cameras: bool = True
+    floor_texture: str | None = None
 
     def render(self, progress: bool = False) -> "SyntheticScene":
         """Render the scene (the generator's defaults for every setting left None)."""
@@ -80,7 +83,8 @@ class SceneRequest:
         from polargs_plugin.data.family import FAMILY, generate_family_scene_views
         from polargs_plugin.data.synthetic import generate_scene_views
 
-        given = {"noise_std": self.noise_std, "quantize_bits": self.bits, "mask": self.mask}
+        given = {"noise_std": self.noise_std, "quantize_bits": self.bits, "mask": self.mask,
+                 "floor_texture": self.floor_texture}
         given = {k: v for k, v in given.items() if v is not None}
         if self.scene == FAMILY:
             size = None if self.width is None and self.height is None else (self.width or self.height, self.height or self.width)
@@ -207,11 +211,12 @@ def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = Fa
 
     Raises:
         PolarInputError: naming ``out``: not a folder, not empty, not writable; ``--mosaic`` with
-            a size the mosaic cannot hold.
+            a size the mosaic cannot hold; ``--floor-texture`` for a scene without a floor.
     """
     out = Path(out)
     _check_out(out, overwrite)
     _check_mosaic_size(request)
+    _check_floor_texture(request)
     if export is not None and export not in EXPORTS:
         raise PolarInputError("--export", f"unknown export {export!r} (choose one of {', '.join(EXPORTS)})")
     if export is not None and request.mosaic is not None:
@@ -250,6 +255,19 @@ def generate_scene_folder(request: SceneRequest, out: Path, overwrite: bool = Fa
         shutil.rmtree(staging, ignore_errors=True)
     return GeneratedScene(out, part.name, part.meta, part.meta["num_views"], statistics.figures(part), count, rendering,
                           writing)
+
+
+def _check_floor_texture(request: SceneRequest) -> None:
+    if request.floor_texture is None:
+        return
+    from polargs_plugin.data.family import FAMILY, family_scene
+    from polargs_plugin.data.scenes import build_scene, with_floor_texture
+
+    spec = family_scene(request.seed).spec if request.scene == FAMILY else build_scene(request.scene)
+    try:
+        with_floor_texture(spec, request.floor_texture)
+    except ValueError as err:
+        raise PolarInputError("--floor-texture", str(err)) from None
 
 
 def _check_mosaic_size(request: SceneRequest) -> None:
