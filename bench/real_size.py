@@ -3,8 +3,9 @@
 Scenes (generated once into ``--cache``, reused after): ``bumpy_mixed``, 36 views of 612x512
 (NeISF's size; RMVP3D's training size), 61 views of 1224x1024 (RMVP3D's full size: 76 million
 input pixels), the same 36 views at 128x128 and at 64x54 (the references), and 36 raw 2448x2048
-IMX250MYR frames (``polargs generate --mosaic rgb``; their cameras are removed before the run, so
-that SfM builds its own). Figures, each
+IMX250MYR frames of glossy_plane_sphere on a speckled floor (``polargs generate --mosaic rgb
+--floor-texture speckle``: bumpy_mixed's smooth surfaces give SfM too few corners; the generator's
+cameras are kept aside in ``true_sparse/0`` and SfM builds its own). Figures, each
 from ``polargs`` commands in child processes (their own peak memory and CPU time, from
 ``os.wait4``) or from one in-process measurement:
 
@@ -21,7 +22,10 @@ from ``polargs`` commands in child processes (their own peak memory and CPU time
   0.02: the CPU preset's 61 Dense calls within 600 iterations, so Dense visits the views as in a
   whole run) (target: at most 6 GB);
 - ``raw``: ``polargs train RAW --sfm --pattern auto --resolution 2`` on the raw frames (at
-  ``--raw-factor``), then ``polargs mesh``: peak memory, SfM's time apart from the training's.
+  ``--raw-iters`` iterations of the CPU preset, or ``--raw-factor``), then ``polargs mesh``: peak
+  memory, SfM's time apart from the training's, the views SfM registered; then the mesh, brought
+  into the generator's frame by the similarity that maps SfM's camera centres onto the true ones
+  (``cameras.similarity_transform``), through ``polargs eval`` against the ground truth.
 
 The table gives each figure with its target; the last line is one JSON object. Runs take hours on
 a shared 2-core machine: start it under ``nice`` and read the load beside the figures (printed
@@ -47,6 +51,7 @@ from pathlib import Path
 
 SECTIONS = ("step", "dense", "runs", "large", "raw")
 SCENE = "bumpy_mixed"
+RAW_SCENE = ("glossy_plane_sphere", "--floor-texture", "speckle")
 TARGETS = {"bytes_per_pixel": 40.0, "base_minutes": 30.0, "full_minutes": 40.0, "large_peak_gb": 6.0}
 
 
@@ -139,7 +144,8 @@ def polargs(bench: Bench, *args: str, log: str) -> Child:
 # ------------------------------------------------------------------------------------- scenes
 def scene_folder(bench: Bench, size: tuple[int, int, int], mosaic: bool = False) -> Path:
     views, width, height = size
-    return bench.cache / (f"{SCENE}-{views}v-{width}x{height}" + ("-raw" if mosaic else ""))
+    name = f"{RAW_SCENE[0]}-speckle" if mosaic else SCENE
+    return bench.cache / (f"{name}-{views}v-{width}x{height}" + ("-raw" if mosaic else ""))
 
 
 def make_scenes(bench: Bench, sections: list[str]) -> None:
@@ -154,9 +160,10 @@ def make_scenes(bench: Bench, sections: list[str]) -> None:
                     "--out", str(folder), log=f"generate-{folder.name}.log")
     raw = scene_folder(bench, sizes.raw, mosaic=True)
     if "raw" in sections and not raw.is_dir():
-        polargs(bench, "generate", "--scene", SCENE, "--views", str(sizes.raw[0]), "--size",
+        polargs(bench, "generate", "--scene", *RAW_SCENE, "--views", str(sizes.raw[0]), "--size",
                 f"{sizes.raw[1]}x{sizes.raw[2]}", "--mosaic", "rgb", "--bits", "16", "--out", str(raw),
                 log=f"generate-{raw.name}.log")
+        (raw / "sparse").rename(raw / "true_sparse")  # the truth, for the evaluation
 
 
 def _pixels(size: tuple[int, int, int]) -> int:
@@ -278,16 +285,49 @@ def measure_large(bench: Bench, factor: str) -> None:
                                        ("--factor", factor), evaluate=False)
 
 
-def measure_raw(bench: Bench, factor: str, sfm: bool) -> None:
+def measure_raw(bench: Bench, schedule: tuple[str, ...], sfm: bool) -> None:
     """The raw frames through ``polargs train --sfm --pattern auto --resolution 2`` and ``mesh``
-    (``sfm`` False: with the cameras written by the generator, for a quick check)."""
+    (``sfm`` False: with the generator's cameras, for a quick check), then the mesh evaluated in
+    the generator's frame."""
     folder = scene_folder(bench, bench.sizes.raw, mosaic=True)
-    if sfm:
-        shutil.rmtree(folder / "sparse", ignore_errors=True)  # SfM every time: its time is a figure
+    shutil.rmtree(folder / "sparse", ignore_errors=True)
+    if not sfm:
+        shutil.copytree(folder / "true_sparse", folder / "sparse")
     flags = ("--sfm",) if sfm else ()
-    bench.figures["raw"] = whole_run(bench, folder, "raw-full", "full",
-                                     (*flags, "--pattern", "auto", "--resolution", "2", "--factor", factor),
-                                     evaluate=False)
+    figures = whole_run(bench, folder, "raw-full", "full", (*flags, "--pattern", "auto", "--resolution", "2", *schedule),
+                        evaluate=False)
+    figures.update(_evaluate_in_true_frame(bench, folder, bench.cache / "runs" / "raw-full"))
+    bench.figures["raw"] = figures
+
+
+def _evaluate_in_true_frame(bench: Bench, folder: Path, run: Path) -> dict:
+    """The run's mesh mapped into the generator's frame by the similarity of SfM's camera centres
+    to the true ones, evaluated there (``polargs eval`` with the true cameras in ``sparse/0``)."""
+    import numpy as np
+    import open3d as o3d
+
+    from polargs_plugin.data.cameras import camera_centers, similarity_transform
+    from polargs_plugin.data.colmap import read_colmap_model
+
+    found = read_colmap_model(folder / "sparse" / "0")
+    true = read_colmap_model(folder / "true_sparse" / "0")
+    names = sorted(set(found) & set(true))
+    centres = camera_centers(np.stack([found[n].world_to_camera for n in names]))
+    true_centres = camera_centers(np.stack([true[n].world_to_camera for n in names]))
+    scale, rotation, shift = similarity_transform(centres, true_centres)
+    residual = np.linalg.norm(scale * centres @ rotation.T + shift - true_centres, axis=1)
+    mesh = o3d.io.read_triangle_mesh(str(run / "tsdf_mesh.ply"))
+    vertices = scale * np.asarray(mesh.vertices) @ rotation.T + shift
+    mesh.vertices = o3d.utility.Vector3dVector(vertices)
+    aligned = run / "tsdf_mesh_true_frame.ply"
+    o3d.io.write_triangle_mesh(str(aligned), mesh)
+    shutil.rmtree(folder / "sparse")
+    shutil.copytree(folder / "true_sparse", folder / "sparse")  # the evaluation's cameras: the true ones
+    polargs(bench, "eval", str(aligned), "--gt", str(folder), "--views", str(folder), "--out",
+            str(run / "metrics_true_frame.json"), log="raw-full-eval.log")
+    metrics = json.loads((run / "metrics_true_frame.json").read_text())
+    return {"registered": len(names), "views": len(true), "alignment_residual_max": float(residual.max()),
+            "metrics": {k: metrics[k] for k in ("chamfer",) if k in metrics}}
 
 
 # ------------------------------------------------------------------------------------- report
@@ -334,6 +374,12 @@ def report(bench: Bench, load_start: str) -> None:
         sfm = raw["sfm_seconds"] or 0.0
         _row(rows, "  SfM; train without SfM; mesh: min", f"{sfm / 60:.1f}; {(raw['train_wall_seconds'] - sfm) / 60:.1f}; "
              f"{raw['steps']['mesh']['wall'] / 60:.1f}")
+        chamfer = (raw["metrics"] or {}).get("chamfer", {})
+        _row(rows, "  views registered; camera centres after the similarity: max error",
+             f"{raw['registered']} of {raw['views']}; {raw['alignment_residual_max']:.4f}")
+        if chamfer:
+            _row(rows, "  Chamfer in the true frame; median signed distance",
+                 f"{chamfer['chamfer']:.4f}; {chamfer['signed_distance_median']:.4f}")
     width = max([len(r[0]) for r in rows] + [6])
     print(f"\nload average at the start {load_start}, at the end {_load()} ({os.cpu_count()} CPUs, {bench.threads} threads)")
     print(f"| {'figure':<{width}} | value | target |")
@@ -342,6 +388,12 @@ def report(bench: Bench, load_start: str) -> None:
         print(f"| {figure:<{width}} | {value} | {target} |")
     print(json.dumps({"bench": "real_size", "sizes": vars(bench.sizes), "threads": bench.threads,
                       "load_start": load_start, "load_end": _load(), **f}))
+
+
+def _raw_schedule(args: argparse.Namespace) -> tuple[str, ...]:
+    if args.quick:
+        return ("--factor", "0.002")
+    return ("--factor", args.raw_factor) if args.raw_factor else ("--iters", args.raw_iters)
 
 
 def main() -> None:
@@ -353,7 +405,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="threads of every training (default 2)")
     parser.add_argument("--factor", default=None, help="--factor of the whole runs (default: the CPU preset)")
     parser.add_argument("--large-factor", default="0.02", help="--factor of the 61 x 1224x1024 run (default 0.02)")
-    parser.add_argument("--raw-factor", default="0.02", help="--factor of the raw-frame run (default 0.02)")
+    parser.add_argument("--raw-iters", default="800",
+                        help="--iters of the raw-frame run at the CPU preset (default 800: seven Dense calls)")
+    parser.add_argument("--raw-factor", default=None, help="--factor of the raw-frame run instead of --raw-iters")
     parser.add_argument("--quick", action="store_true", help="tiny sizes and schedules: a check that it runs")
     args = parser.parse_args()
     sections = [s.strip() for s in args.only.split(",") if s.strip()]
@@ -371,7 +425,7 @@ def main() -> None:
         "step": lambda: measure_steps(bench),
         "dense": lambda: measure_dense(bench),
         "large": lambda: measure_large(bench, "0.002" if args.quick else args.large_factor),
-        "raw": lambda: measure_raw(bench, "0.002" if args.quick else args.raw_factor, sfm=not args.quick),
+        "raw": lambda: measure_raw(bench, _raw_schedule(args), sfm=not args.quick),
         "runs": lambda: measure_runs(bench, factor),
     }
     for name, measure in measures.items():  # the quick sections first, the whole runs last

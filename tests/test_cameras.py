@@ -151,3 +151,34 @@ def test_idr_missing_key_names_it():
     with pytest.raises(PolarInputError, match="scale_mat_2") as err:
         cam.idr_camera({"world_mat_2": np.eye(4)}, "world_mat_2", "scale_mat_2", "x/cameras.npz")
     assert "x/cameras.npz" in str(err.value)
+
+
+def test_similarity_transform_recovers_a_known_similarity_and_never_reflects():
+    from scipy.spatial.transform import Rotation
+
+    from polargs_plugin.data.cameras import similarity_transform
+
+    rng = np.random.default_rng(7)
+    points = rng.normal(size=(20, 3))
+    R = Rotation.random(random_state=3).as_matrix()
+    target = 0.37 * points @ R.T + np.array([4.0, -1.0, 2.5])
+    scale, R_found, t = similarity_transform(points, target)
+    assert abs(scale - 0.37) < 1e-12 and np.allclose(R_found, R, atol=1e-12) and np.allclose(t, [4.0, -1.0, 2.5])
+    noisy = target + rng.normal(scale=1e-3, size=target.shape)
+    scale, R_found, t = similarity_transform(points, noisy)
+    assert abs(scale - 0.37) < 1e-3 and np.allclose(R_found, R, atol=1e-2)
+    mirrored = points * np.array([1.0, 1.0, -1.0])  # no rotation maps these: the best one is not a reflection
+    _, R_found, _ = similarity_transform(points, mirrored)
+    assert np.isclose(np.linalg.det(R_found), 1.0)
+    with pytest.raises(ValueError, match="one line"):
+        similarity_transform(np.outer(np.arange(5.0), [1.0, 2.0, 3.0]), rng.normal(size=(5, 3)))
+    with pytest.raises(ValueError, match="N >= 3"):
+        similarity_transform(points[:2], target[:2])
+
+
+def test_camera_centers_are_the_eyes_of_look_at():
+    from polargs_plugin.data.cameras import camera_centers
+
+    eyes = np.array([[3.0, 0.5, 1.0], [-2.0, 1.0, 0.3], [0.1, -2.5, 2.0]])
+    w2c = np.stack([cam.look_at(eye, [0.0, 0.0, 0.2]) for eye in eyes])
+    np.testing.assert_allclose(camera_centers(w2c), eyes, atol=1e-12)

@@ -74,17 +74,12 @@ def test_sfm_recovers_cameras_up_to_similarity(tmp_path):
 
 def _assert_cameras_match(views, true: dict[str, np.ndarray], max_offset: float, max_degrees: float) -> None:
     """The views' cameras are the true world_to_camera matrices up to a similarity (COLMAP fixes
-    neither scale nor frame): centres within ``max_offset`` after the Umeyama alignment,
+    neither scale nor frame): centres within ``max_offset`` after the least-squares similarity,
     orientations within ``max_degrees``."""
     centres = np.stack([v.camera_center.numpy() for v in views])
-    true_centres = np.stack([-true[v.name][:3, :3].T @ true[v.name][:3, 3] for v in views])
-    mu, true_mu = centres.mean(0), true_centres.mean(0)
-    cov = (true_centres - true_mu).T @ (centres - mu) / len(views)
-    U, S, Vt = np.linalg.svd(cov)
-    D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
-    rotation = U @ D @ Vt
-    scale = np.trace(np.diag(S) @ D) / ((centres - mu) ** 2).sum(1).mean()
-    aligned = scale * (centres - mu) @ rotation.T + true_mu
+    true_centres = cam.camera_centers(np.stack([true[v.name] for v in views]))
+    scale, rotation, shift = cam.similarity_transform(centres, true_centres)
+    aligned = scale * centres @ rotation.T + shift
     assert np.abs(aligned - true_centres).max() < max_offset
     for v in views:  # camera orientation: R_sfm = R_true @ rotation (world frames differ by it)
         residual = true[v.name][:3, :3] @ rotation @ v.world_to_camera.numpy()[:3, :3].T

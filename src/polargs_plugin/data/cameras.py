@@ -47,6 +47,8 @@ __all__ = [
     "intrinsics_from_fov",
     "qvec_to_rotmat",
     "rotmat_to_qvec",
+    "similarity_transform",
+    "camera_centers",
 ]
 
 _OPENCV_FROM_OPENGL = np.diag([1.0, -1.0, -1.0])
@@ -288,3 +290,45 @@ def write_idr_cameras(path: str | os.PathLike, cameras: dict[str, tuple[np.ndarr
         arrays[f"scale_mat_{key}"] = scale_mat
     with atomic_path(path) as tmp:
         np.savez(tmp, **arrays)
+
+
+def camera_centers(world_to_camera: np.ndarray) -> np.ndarray:
+    """(N, 3) world positions of the cameras of (N, 4, 4) world_to_camera matrices: -R^T t."""
+    w2c = np.asarray(world_to_camera, dtype=np.float64)
+    return -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
+
+
+def similarity_transform(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity (scale s, rotation R, translation t) taking the points ``source`` closest to
+    ``target`` in least squares, ``target ~ s R source + t`` (Umeyama 1991, no reflection).
+
+    The frame of a structure-from-motion model is fixed only up to a similarity: mapping its
+    camera centres onto known ones brings a reconstruction into the known frame, e.g. to compare
+    it with a ground-truth mesh.
+
+    Args:
+        source, target: (N, 3) corresponding points, N >= 3 and not all on one line.
+
+    Returns:
+        (s, R (3, 3), t (3,)).
+
+    Example:
+        >>> rng = np.random.default_rng(0)
+        >>> points = rng.normal(size=(6, 3))
+        >>> R = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
+        >>> s, R_found, t = similarity_transform(points, 2.0 * points @ R.T + [1.0, 2.0, 3.0])
+        >>> round(s, 6), np.allclose(R_found, R), np.round(t, 6).tolist()
+        (2.0, True, [1.0, 2.0, 3.0])
+    """
+    source, target = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3 or len(source) < 3:
+        raise ValueError(f"need two (N, 3) point sets of one shape with N >= 3, got {source.shape} and {target.shape}")
+    mu_source, mu_target = source.mean(0), target.mean(0)
+    centred_source, centred_target = source - mu_source, target - mu_target
+    U, S, Vt = np.linalg.svd(centred_target.T @ centred_source / len(source))
+    if S[1] <= 1e-12 * max(S[0], 1e-300):
+        raise ValueError("the points lie on one line (or one point): the rotation is not determined")
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])  # a rotation, never a reflection
+    R = U @ D @ Vt
+    scale = float(np.trace(np.diag(S) @ D) / (centred_source**2).sum(1).mean())
+    return scale, R, mu_target - scale * R @ mu_source
