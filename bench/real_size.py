@@ -315,10 +315,13 @@ def _evaluate_in_true_frame(bench: Bench, folder: Path, run: Path) -> dict:
     centres = camera_centers(np.stack([found[n].world_to_camera for n in names]))
     true_centres = camera_centers(np.stack([true[n].world_to_camera for n in names]))
     scale, rotation, shift = similarity_transform(centres, true_centres)
-    residual = np.linalg.norm(scale * centres @ rotation.T + shift - true_centres, axis=1)
+
+    def to_true_frame(points: np.ndarray) -> np.ndarray:
+        return scale * points @ rotation.T + shift
+
+    residual = np.linalg.norm(to_true_frame(centres) - true_centres, axis=1)
     mesh = o3d.io.read_triangle_mesh(str(run / "tsdf_mesh.ply"))
-    vertices = scale * np.asarray(mesh.vertices) @ rotation.T + shift
-    mesh.vertices = o3d.utility.Vector3dVector(vertices)
+    mesh.vertices = o3d.utility.Vector3dVector(to_true_frame(np.asarray(mesh.vertices)))
     aligned = run / "tsdf_mesh_true_frame.ply"
     o3d.io.write_triangle_mesh(str(aligned), mesh)
     shutil.rmtree(folder / "sparse")

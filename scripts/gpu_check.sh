@@ -3,7 +3,8 @@
 # ratios of the rasterizer, PatchMatch and SSIM (one JSON line), one ablation cell (base and full)
 # on CUDA and, with --trainer NAME CHECKOUT, that trainer patched and trained 1000 iterations.
 # Each step says what it could not do and why (no GPU, no open3d, no extension) instead of failing
-# silently. About 8 minutes on one modern GPU. See docs/adapters/dryrun.md.
+# silently. About 5 minutes on an H200 with --iters 1500 (the cells take most of it). See
+# docs/adapters/dryrun.md.
 #
 #   bash scripts/gpu_check.sh [--out DIR] [--scene SCENE_FOLDER] [--iters N] [--trainer NAME CHECKOUT]
 #
@@ -25,7 +26,7 @@ while [ $# -gt 0 ]; do
     --scene) SCENE=$2; shift 2 ;;
     --iters) ITERS=(--iters "$2"); shift 2 ;;
     --trainer) TRAINER=$2; CHECKOUT=$3; shift 3 ;;
-    -h|--help) sed -n 2,15p "$0"; exit 0 ;;
+    -h|--help) sed -n 2,14p "$0"; exit 0 ;;
     *) echo "error: unknown argument $1" >&2; exit 2 ;;
   esac
 done
