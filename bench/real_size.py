@@ -20,7 +20,8 @@ from ``polargs`` commands in child processes (their own peak memory and CPU time
   preset, Base and Full (targets on 2 cores: 30 and 40 minutes), with the CPU minutes beside;
 - ``large_peak_gb``: ``polargs train`` of 61 x 1224x1024, Full, at ``--large-factor`` (default
   0.02: the CPU preset's 61 Dense calls within 600 iterations, so Dense visits the views as in a
-  whole run) (target: at most 6 GB);
+  whole run) (target: at most 6 GB), and its bytes per input pixel against the same training of
+  36 x 64x54;
 - ``raw``: ``polargs train RAW --sfm --pattern auto --resolution 2`` on the raw frames (at
   ``--raw-iters`` iterations of the CPU preset, or ``--raw-factor``), then ``polargs mesh``: peak
   memory, SfM's time apart from the training's, the views SfM registered; then the mesh, brought
@@ -152,7 +153,7 @@ def make_scenes(bench: Bench, sections: list[str]) -> None:
     """Generate the scenes the ``sections`` read (those missing from the cache)."""
     sizes = bench.sizes
     needed = {"step": [sizes.real, sizes.step_reference], "dense": [sizes.real, sizes.step_reference],
-              "runs": [sizes.real, sizes.base], "large": [sizes.large]}
+              "runs": [sizes.real, sizes.base], "large": [sizes.large, sizes.base]}
     for size in dict.fromkeys(size for name in sections for size in needed.get(name, [])):
         folder = scene_folder(bench, size)
         if not folder.is_dir():
@@ -281,8 +282,16 @@ def measure_runs(bench: Bench, factor: str | None) -> None:
 
 
 def measure_large(bench: Bench, factor: str) -> None:
-    bench.figures["large"] = whole_run(bench, scene_folder(bench, bench.sizes.large), "large-full", "full",
-                                       ("--factor", factor), evaluate=False)
+    """The 61 x 1224x1024 Full training, and its bytes per input pixel against the same training
+    of the 64x54 reference."""
+    large = whole_run(bench, scene_folder(bench, bench.sizes.large), "large-full", "full", ("--factor", factor),
+                      evaluate=False)
+    small = whole_run(bench, scene_folder(bench, bench.sizes.base), "small-large-full", "full", ("--factor", factor),
+                      mesh=False, evaluate=False)
+    large["base_peak_bytes"] = small["train_peak_bytes"]
+    pixels = _pixels(bench.sizes.large) - _pixels(bench.sizes.base)
+    large["bytes_per_pixel"] = (large["train_peak_bytes"] - small["train_peak_bytes"]) / pixels
+    bench.figures["large"] = large
 
 
 def measure_raw(bench: Bench, schedule: tuple[str, ...], sfm: bool) -> None:
@@ -369,6 +378,8 @@ def report(bench: Bench, load_start: str) -> None:
         large = f["large"]
         _row(rows, f"{_label(sizes.large)} Full: peak RSS", f"{large['train_peak_bytes'] / 2**30:.2f} GB",
              f"<= {TARGETS['large_peak_gb']:.0f} GB")
+        _row(rows, f"  its bytes per input pixel ({_label(sizes.base)} reference {large['base_peak_bytes'] / 2**30:.2f} GB)",
+             f"{large['bytes_per_pixel']:.1f}", f"<= {TARGETS['bytes_per_pixel']:.0f}")
         _row(rows, "  its train wall (CPU) min", f"{large['train_wall_seconds'] / 60:.1f} ({large['train_cpu_seconds'] / 60:.1f})")
     if f.get("raw"):
         raw = f["raw"]
