@@ -53,14 +53,20 @@ if ! "$PYTHON" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() el
   exit 0
 fi
 "$PYTHON" -c "import torch; print('[gpu_check] device:', torch.cuda.get_device_name(0), '| torch', torch.__version__)"
+# The package's requirements for this interpreter: a plain `pip` may install for another one.
+MISSING=$(for m in numpy scipy kornia cv2 imageio numba tqdm; do has_module "$m" || printf '%s ' "$m"; done)
+if [ -n "$MISSING" ]; then
+  note "error: $PYTHON ($("$PYTHON" -c 'import sys; print(sys.executable)')) cannot import: ${MISSING% }; install them for it ($PYTHON -m pip install ...) and run again"
+  exit 1
+fi
 
 # 1. The CUDA-only tests (they skip themselves without a GPU elsewhere), from the test files that
 # hold them: the other files need packages (open3d) that a GPU machine may lack.
 CUDA_TEST_FILES=$(grep -l "torch.cuda.is_available()" "$ROOT"/tests/test_*.py)
-if has_module pytest; then
-  run_step "CUDA-only tests" "$PYTHON" -m pytest -q -p no:cacheprovider -rs -k "cuda or gpu" $CUDA_TEST_FILES
+if ! has_module pytest || ! has_module polanalyser; then
+  skip "CUDA-only tests: pytest or polanalyser (the tests' reference) is not installed for $PYTHON"
 else
-  skip "CUDA-only tests: pytest is not installed"
+  run_step "CUDA-only tests" "$PYTHON" -m pytest -q -p no:cacheprovider -rs -k "cuda or gpu" $CUDA_TEST_FILES
 fi
 
 # 2. CUDA / CPU time ratios (one JSON line, also in $OUT/ratios.json).

@@ -357,3 +357,32 @@ def test_gpu_check_reports_clearly_without_a_gpu(tmp_path: Path) -> None:
                           text=True, env=env)
     assert done.returncode == 0
     assert "not done: every step: no CUDA device" in done.stdout
+
+
+def test_gpu_check_names_what_its_python_cannot_import(tmp_path: Path) -> None:
+    """A GPU machine whose python lacks a requirement (a wheel installed by another interpreter's
+    pip): one line naming the module and the interpreter, exit status 1, nothing run."""
+    import os
+    import subprocess
+
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(
+        "import sys, importlib.abc\n"
+        "class _Block(importlib.abc.MetaPathFinder):\n"
+        "    def find_spec(self, name, path, target=None):\n"
+        "        if name == 'kornia':\n"
+        "            raise ModuleNotFoundError('kornia blocked')\n"
+        "sys.meta_path.insert(0, _Block())\n"
+        "import torch\n"
+        "torch.cuda.is_available = lambda: True\n"
+        "torch.cuda.get_device_name = lambda index=0: 'stand-in GPU'\n"
+    )
+    env = dict(os.environ, PYTHON=sys.executable, PYTHONPATH=str(site))
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_check.sh"), "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, env=env)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "stand-in GPU" in done.stdout
+    lines = [line for line in done.stdout.splitlines() if "error:" in line]
+    assert len(lines) == 1 and "cannot import: kornia;" in lines[0] and sys.executable in lines[0]
+    assert "CUDA-only tests" not in done.stdout
