@@ -272,11 +272,7 @@ def measure_runs(bench: Bench, factor: str | None) -> None:
     extra = ("--factor", factor) if factor else ()
     for variant in ("base", "full"):
         real = whole_run(bench, scene_folder(bench, bench.sizes.real), f"real-{variant}", variant, extra)
-        small = whole_run(bench, scene_folder(bench, bench.sizes.base), f"small-{variant}", variant, extra,
-                          mesh=False, evaluate=False)
-        pixels = _pixels(bench.sizes.real) - _pixels(bench.sizes.base)
-        real["bytes_per_pixel"] = (real["train_peak_bytes"] - small["train_peak_bytes"]) / pixels
-        real["base_peak_bytes"] = small["train_peak_bytes"]
+        _add_bytes_per_pixel(bench, real, bench.sizes.real, f"small-{variant}", variant, extra)
         real["maps_bytes_per_pixel"] = real["maps_bytes"] / _pixels(bench.sizes.real)
         bench.figures[f"run_{variant}"] = real
 
@@ -286,12 +282,18 @@ def measure_large(bench: Bench, factor: str) -> None:
     of the 64x54 reference."""
     large = whole_run(bench, scene_folder(bench, bench.sizes.large), "large-full", "full", ("--factor", factor),
                       evaluate=False)
-    small = whole_run(bench, scene_folder(bench, bench.sizes.base), "small-large-full", "full", ("--factor", factor),
-                      mesh=False, evaluate=False)
-    large["base_peak_bytes"] = small["train_peak_bytes"]
-    pixels = _pixels(bench.sizes.large) - _pixels(bench.sizes.base)
-    large["bytes_per_pixel"] = (large["train_peak_bytes"] - small["train_peak_bytes"]) / pixels
+    _add_bytes_per_pixel(bench, large, bench.sizes.large, "small-large-full", "full", ("--factor", factor))
     bench.figures["large"] = large
+
+
+def _add_bytes_per_pixel(bench: Bench, figures: dict, size: tuple[int, int, int], name: str, variant: str,
+                         extra: tuple[str, ...]) -> None:
+    """Train the 64x54 reference as ``figures``' run was trained; add its peak (``base_peak_bytes``)
+    and the run's peak beyond it over the difference in input pixels (``bytes_per_pixel``)."""
+    small = whole_run(bench, scene_folder(bench, bench.sizes.base), name, variant, extra, mesh=False, evaluate=False)
+    figures["base_peak_bytes"] = small["train_peak_bytes"]
+    pixels = _pixels(size) - _pixels(bench.sizes.base)
+    figures["bytes_per_pixel"] = (figures["train_peak_bytes"] - small["train_peak_bytes"]) / pixels
 
 
 def measure_raw(bench: Bench, schedule: tuple[str, ...], sfm: bool) -> None:

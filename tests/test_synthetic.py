@@ -245,7 +245,6 @@ def test_floor_texture_replaces_the_floor_material_only():
     assert changed and all(not family.object_triangles[family.triangle_material == i].any() for i in changed)
 
 
-
 # --- polarization -------------------------------------------------------------------------------
 
 
