@@ -157,6 +157,21 @@ def test_numba_search_matches_the_torch_reference():
         assert abs((ang_ref < 5).float().mean() - (ang_fast < 5).float().mean()) < 0.03
 
 
+def test_grey_sources_give_the_colour_sources_result():
+    """PatchMatch reads the sources' mean over the channels: passing that grey gives the same planes
+    bit for bit (the densifier hands over grey sources, a fourth of the colour images' memory)."""
+    views, renders = make_scene("sphere", size=32, distance=3.5, focal_ratio=1.6, texture_scale=0.7)
+    _, depth, normal, mask = renders[0]
+    d0, n0 = _corrupt(depth, normal)
+    colour = [(r[0].expand(3, -1, -1) * torch.tensor([0.9, 1.0, 1.1])[:, None, None],) + tuple(r[1:]) for r in renders]
+    grey = [(c[0].mean(-3, keepdim=True),) + tuple(c[1:]) for c in colour]
+    config = PatchMatchConfig(iterations=1)
+    from_colour, from_grey = (_run(views, r, d0, n0, config=config) for r in (colour, grey))
+    assert from_colour.depth.count_nonzero() > 0
+    for name in ("depth", "normal", "cost", "photometric_cost"):
+        assert torch.equal(getattr(from_colour, name), getattr(from_grey, name)), name
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu_torch_backend():
     views, renders = make_scene("plane", size=32)

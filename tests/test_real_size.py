@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from polargs_plugin.cli import main
-from polargs_plugin.compact import HALF_MAX, HALF_RELATIVE_ERROR, AngleImages, Deferred, Half, Plain, compact
+from polargs_plugin.compact import HALF_MAX, HALF_RELATIVE_ERROR, AngleImages, Bits, Deferred, Half, Plain, compact
 from polargs_plugin.correction import compute_polar_maps
 from polargs_plugin.correction.store import MapsStore, compact_maps, expand_maps
 from polargs_plugin.data.resolution import (
@@ -63,8 +63,22 @@ def test_half_holds_floats_within_float16_rounding_and_refuses_nothing_silently(
     huge = values.clone()
     huge[0, 0, 0, 0] = 2 * HALF_MAX  # beyond float16: kept as it is
     assert isinstance(compact(huge), Plain) and compact(huge).decode() is huge
-    mask = torch.rand(1, 8, 8) > 0.5
-    assert isinstance(compact(mask), Plain) and compact(mask).decode() is mask
+
+
+@pytest.mark.parametrize("shape", [(1, 8, 8), (1, 5, 7), (3,), (0,)])
+def test_masks_are_kept_as_bits_and_come_back_exactly(shape):
+    mask = torch.rand(shape) > 0.5
+    stored = compact(mask)
+    assert isinstance(stored, Bits) and stored.shape == mask.shape and stored.dtype == torch.bool
+    assert stored.nbytes == math.ceil(mask.numel() / 8)
+    decoded = stored.decode()
+    assert decoded.dtype == torch.bool and torch.equal(decoded, mask)
+    # bit i % 8 of byte i // 8, against numpy's little-endian packbits
+    expected = np.packbits(mask.reshape(-1).numpy(), bitorder="little")
+    assert np.array_equal(stored.packed.numpy(), expected)
+    assert torch.equal(pickle.loads(pickle.dumps(stored.to("cpu"))).decode(), mask)
+    with pytest.raises(TypeError, match="bool"):
+        Bits.pack(mask.float())
 
 
 def test_a_view_decodes_its_stored_images_on_every_read():
@@ -242,13 +256,15 @@ def test_a_scene_folder_read_at_half_resolution(scene_folder):
         read_scene_folder(scene_folder, resolution=40)
 
 
-def test_prepare_view_keeps_integer_images_and_compacts_float_ones():
+def test_prepare_view_keeps_integer_images_and_compacts_float_ones_and_masks():
     levels = torch.randint(0, 256, (4, 3, 8, 8), dtype=torch.uint8)
     K, w2c = torch.eye(3, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
     kept = prepare_view(View("a", K, w2c, AngleImages(levels, 255)))
     assert isinstance(kept.stored("stokes"), AngleImages)
-    floats = prepare_view(View("b", K, w2c, torch.rand(3, 3, 8, 8), normal_gt=torch.rand(3, 8, 8)))
+    mask = torch.rand(1, 8, 8) > 0.5
+    floats = prepare_view(View("b", K, w2c, torch.rand(3, 3, 8, 8), mask=mask, normal_gt=torch.rand(3, 8, 8)))
     assert isinstance(floats.stored("stokes"), Half) and isinstance(floats.stored("normal_gt"), Half)
+    assert isinstance(floats.stored("mask"), Bits) and torch.equal(floats.mask, mask)
 
 
 # ------------------------------------------------------------------ --resolution on every command

@@ -278,15 +278,15 @@ def _square_mask_view(view: View, lo: int, hi: int) -> View:
 def test_mask_edge_band_is_the_ring_of_pixels_just_outside_the_mask(views, width):
     lo, hi = 8, 20  # a 12 x 12 square well inside the image
     trainer = Trainer([_square_mask_view(views[0], lo, hi)], _config(mask_edge_band=width))
-    band = trainer.edge_bands[0][0]
+    band = trainer.edge_band(trainer.views[0])[0]
     rows, cols = torch.meshgrid(torch.arange(SIZE), torch.arange(SIZE), indexing="ij")
     # Chebyshev distance to the square: 0 inside it
     dist = torch.maximum((lo - rows).clamp(min=0).maximum((rows - hi + 1).clamp(min=0)),
                          (lo - cols).clamp(min=0).maximum((cols - hi + 1).clamp(min=0)))
     assert torch.equal(band, (dist >= 1) & (dist <= width))
     assert int(band.sum()) == (12 + 2 * width) ** 2 - 12**2
-    assert Trainer(views, _config()).edge_bands == [None] * len(views)  # off by default
-    assert Trainer(views, _config(mask_edge_band=1, use_masks=False)).edge_bands == [None] * len(views)
+    assert Trainer(views, _config()).edge_band(views[0]) is None  # off by default
+    assert Trainer(views, _config(mask_edge_band=1, use_masks=False)).edge_band(views[0]) is None
     with pytest.raises(ValueError, match="mask_edge_band"):
         Trainer(views, _config(mask_edge_band=-1))
 
@@ -296,7 +296,7 @@ def test_mask_edge_band_pixels_give_the_colour_loss_no_gradient(views):
     loss: it equals the colour loss with the band's rendered pixels set to the target."""
     view = _square_mask_view(views[0], 6, 22)
     trainer = Trainer([view], _config(mask_edge_band=1))
-    band = trainer.edge_bands[0]
+    band = trainer.edge_band(trainer.views[0])
     colors: list[torch.Tensor] = []
     render = trainer.render
 

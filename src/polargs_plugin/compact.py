@@ -14,10 +14,11 @@ stored                 when                                           decoded
                        other formats), images averaged by              relative 2^-11 = 4.9e-4)
                        ``--resolution``
 :class:`Deferred`      a scene folder's GT maps (``.npy`` files)       read from the file when used
+:class:`Bits`          masks of a prepared view                       bool, as given
 :class:`Plain`         a tensor given as it is (library use)          the tensor itself
 =====================  =============================================  ===========================
 
-Masks stay ``bool`` (one byte per pixel). Every stored form answers ``shape``, ``dtype``
+Every stored form answers ``shape``, ``dtype``
 (decoded), ``device`` and ``nbytes`` without decoding, and :meth:`decode` allocates a fresh
 full-precision tensor each time it is called: callers keep the decoded tensor only while they
 use it (one view at a time).
@@ -33,8 +34,8 @@ from torch import Tensor
 
 from polargs_plugin.optics.stokes import stokes_from_intensities
 
-__all__ = ["HALF_MAX", "HALF_RELATIVE_ERROR", "AngleImages", "Deferred", "Half", "Plain", "Stored", "as_stored",
-           "compact"]
+__all__ = ["HALF_MAX", "HALF_RELATIVE_ERROR", "AngleImages", "Bits", "Deferred", "Half", "Plain", "Stored",
+           "as_stored", "compact"]
 
 #: Largest finite float16 value; float data beyond it is kept as float32.
 HALF_MAX = 65504.0
@@ -111,6 +112,65 @@ class Half(_Held):
 
     def to(self, device: torch.device | str) -> Half:
         return Half(self.values.to(device), self.decoded_dtype)
+
+
+class Bits:
+    """A bool tensor packed eight values to a byte; :meth:`decode` unpacks it.
+
+    Attributes:
+        packed: (ceil(N / 8),) uint8, value ``i`` of the flattened tensor in bit ``i % 8`` of byte
+            ``i // 8``.
+        shape: the shape of the bool tensor.
+
+    Example:
+        >>> mask = torch.tensor([[True, False, True], [False, False, True]])
+        >>> bits = Bits.pack(mask)
+        >>> bits.nbytes, torch.equal(bits.decode(), mask)
+        (1, True)
+    """
+
+    __slots__ = ("packed", "shape")
+
+    def __init__(self, packed: Tensor, shape: tuple[int, ...]):
+        self.shape = torch.Size(shape)
+        if packed.dtype != torch.uint8 or packed.shape != ((self.shape.numel() + 7) // 8,):
+            raise ValueError(f"Bits needs ({(self.shape.numel() + 7) // 8},) uint8 for shape {tuple(self.shape)}, "
+                             f"got {packed.dtype} {tuple(packed.shape)}")
+        self.packed = packed
+
+    @classmethod
+    def pack(cls, values: Tensor) -> Bits:
+        """``values`` (bool, any shape) packed."""
+        if values.dtype != torch.bool:
+            raise TypeError(f"Bits packs bool tensors, got {values.dtype}")
+        flat = values.reshape(-1)
+        padded = torch.nn.functional.pad(flat.to(torch.uint8), (0, -flat.numel() % 8)).reshape(-1, 8)
+        return cls((padded << _BIT_SHIFTS.to(values.device)).sum(1, dtype=torch.uint8), values.shape)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return torch.bool
+
+    @property
+    def device(self) -> torch.device:
+        return self.packed.device
+
+    @property
+    def nbytes(self) -> int:
+        return self.packed.numel()
+
+    def decode(self) -> Tensor:
+        bits = (self.packed[:, None] >> _BIT_SHIFTS.to(self.packed.device)) & 1
+        return bits.reshape(-1)[: self.shape.numel()].bool().reshape(self.shape)
+
+    def all_finite(self) -> bool:
+        return True
+
+    def to(self, device: torch.device | str) -> Bits:
+        return Bits(self.packed.to(device), self.shape)
+
+
+_BIT_SHIFTS = torch.arange(8, dtype=torch.uint8)
 
 
 class AngleImages:
@@ -199,24 +259,27 @@ def _transformed(transform: Callable[[Tensor], Tensor], load: Callable[[], Tenso
     return transform(load())
 
 
-Stored = Plain | Half | AngleImages | Deferred
+Stored = Plain | Half | Bits | AngleImages | Deferred
 """Any stored form: ``shape``, ``dtype``, ``device``, ``nbytes``, ``decode()``, ``all_finite()``, ``to(device)``."""
 
 
 def as_stored(value: Tensor | Stored) -> Stored:
     """``value`` as a stored form: a stored form as it is, a tensor as :class:`Plain`."""
-    if isinstance(value, (Plain, Half, AngleImages, Deferred)):
+    if isinstance(value, (Plain, Half, Bits, AngleImages, Deferred)):
         return value
     if isinstance(value, Tensor):
         return Plain(value)
-    raise TypeError(f"expected a tensor or a stored form (Plain, Half, AngleImages, Deferred), got {type(value).__name__}")
+    raise TypeError(f"expected a tensor or a stored form (Plain, Half, Bits, AngleImages, Deferred), got {type(value).__name__}")
 
 
 def compact(value: Tensor | Stored) -> Stored:
-    """The smallest faithful form of ``value``: float32/64 tensors whose values float16 holds
-    (finite, magnitude at most :data:`HALF_MAX`) become :class:`Half` (decoded to their own
-    dtype); other tensors (bool, integer, larger floats) and stored forms stay as they are."""
+    """The smallest faithful form of ``value``: bool tensors become :class:`Bits`; float32/64
+    tensors whose values float16 holds (finite, magnitude at most :data:`HALF_MAX`) become
+    :class:`Half` (decoded to their own dtype); other tensors (integer, larger floats) and stored
+    forms stay as they are."""
     stored = as_stored(value)
+    if isinstance(stored, Plain) and stored.dtype == torch.bool:
+        return Bits.pack(stored.values)
     if not isinstance(stored, Plain) or not stored.values.is_floating_point() or stored.dtype == torch.float16:
         return stored
     values = stored.values

@@ -143,7 +143,7 @@ def resample_view(view: View, resolution: int) -> View:
 
 def prepare_view(view: View, resolution: int = 1) -> View:
     """``view`` at ``resolution`` with its float images stored as float16 where float16 holds them
-    (:func:`polargs_plugin.compact.compact`); integer angle images and masks stay as they are."""
+    and its mask as bits (:func:`polargs_plugin.compact.compact`); integer angle images stay as they are."""
     view = resample_view(view, resolution)
-    return view.replaced(**{name: compact(view.stored(name)) for name in ("stokes", "normal_gt", "depth_gt")
+    return view.replaced(**{name: compact(view.stored(name)) for name in ("stokes", "mask", "normal_gt", "depth_gt")
                             if view.stored(name) is not None})

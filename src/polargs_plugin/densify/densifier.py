@@ -208,7 +208,8 @@ class PolarDensifier:
         gen = self._device_generator(dev)
         result = patchmatch(
             view.image.to(dev), view.K, view.world_to_camera,
-            torch.stack([v.image.to(dev) for v in src_views]),
+            # grey already (all PatchMatch reads of them): a fourth of the colour images' memory
+            torch.stack([v.image.to(dev).mean(-3, keepdim=True) for v in src_views]),
             torch.stack([v.K for v in src_views]), torch.stack([v.world_to_camera for v in src_views]),
             render.depth, render.normal,
             aolp=ref_polar[0] if ref_polar is not None else None,

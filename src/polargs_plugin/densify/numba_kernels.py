@@ -263,12 +263,15 @@ def _pixel_setup(src, A, x, y):
 
 @nb.njit(parallel=True, **_OPTS)
 def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k, gray, sigma_spatial,
-                sigma_color, phi, omega, params, active, depth, out_depth, out_normal, out_photo, out_total):
+                sigma_color, phi, omega, params, active, depth, out_depth, out_normal, out_photo, out_total,
+                best_total):
     """Score the M initial hypotheses ``cand_d`` (M, H, W), ``cand_n`` (M, 3, H, W) at ``idx``.
 
     Reads ``depth`` (for S_nd), writes the cheapest admissible hypothesis into the ``out_*``
-    arrays (copies of the state, so that neighbours see the old depths). Returns the number of
-    evaluations.
+    arrays (copies of the state, so that neighbours see the old depths) where it costs less than
+    ``best_total`` (H, W) float64 holds, and lowers that: called group after group with one
+    ``best_total`` (inf at first), it keeps the first cheapest of all groups, compared at the
+    precision of the costs rather than of the float32 state. Returns the number of evaluations.
     """
     w = depth.shape[1]
     num_m = cand_d.shape[0]
@@ -287,7 +290,7 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
         ax, ay, az = _pixel_setup(src, A, x, y)
         scratch = np.empty(num_s)
         has_dg, gx, gy, gz = _depth_gradient_normal(depth, rays, active, x, y)
-        best = np.inf
+        best = best_total[y, x]
         best_m = -1
         best_photo = _MAX_COST
         for m in range(num_m):
@@ -309,6 +312,7 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
                 out_normal[a, y, x] = cand_n[best_m, a, y, x]
             out_photo[y, x] = best_photo
             out_total[y, x] = best
+            best_total[y, x] = best
     return count
 
 

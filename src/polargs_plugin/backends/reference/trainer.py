@@ -233,8 +233,6 @@ class Trainer:
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
         for view in self.views:
             _check_channels(view)
-        # one byte a pixel, so kept; the targets (12 bytes a pixel) are built when used
-        self.edge_bands = [self.edge_band(v) for v in self.views]
         factor = cfg.schedule_scale
         self.sh_interval = max(1, round(cfg.sh_increase_every * factor))
         lrs = dataclasses.replace(cfg.lrs, means_max_steps=max(1, round(cfg.lrs.means_max_steps * factor)))
@@ -319,7 +317,9 @@ class Trainer:
         if it % self.sh_interval == 0:
             model.active_sh_degree = min(model.active_sh_degree + 1, model.max_sh_degree)
         index = self._next_view()
-        view, band = self.views[index], self.edge_bands[index]
+        # the band and the target are built when used, not kept: a step's work is far larger
+        view = self.views[index]
+        band = self.edge_band(view)
         target = self.target(view)
 
         # The hooks get the activations the render used (one set of activation nodes to differentiate).
