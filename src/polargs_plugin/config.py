@@ -551,11 +551,14 @@ class DensifyConfig(CheckedConfig):
             view's rendered depth serves the consistency filters; in [0, 1]. Default 0.5.
         seed_depth_footprints: how far, in pixel footprints (depth / focal), the rendered surface
             must lie behind PatchMatch's to count as wrong (either side with
-            ``seed_behind_surface``); >= 0. 0.88: 0.5 % of the depth at the bundled scenes'
-            128 px, 2 % at 40 px. Below about a footprint, PatchMatch's own sub-pixel noise (its
-            multi-view filter allows 1 % of the depth) would seed where the render is right; far
-            above it, a surface recessed by a pixel goes unseeded (docs/patchmatch.md "Seeding").
-            The paper seeds every pixel that passes the filters. Default 0.88.
+            ``seed_behind_surface``); >= 0. 2.5: 1.4 % of the depth at the bundled scenes'
+            128 px, 5.7 % at 40 px. A regularised model's render commonly lies one or two
+            footprints behind the true surface where the surface is dim and uniform or seen by few
+            views; seeds there become a second layer that training turns into haze in front of
+            the surface, so only a clearly wrong render (a recess, a missing part) is seeded.
+            Lower values (about one footprint) also seed a shallow recess and help on textured
+            shiny objects seen by many views (docs/patchmatch.md "Seeding"). The paper seeds every
+            pixel that passes the filters. Default 2.5.
         seed_max_plane_deviation: seeds only where the 3x3 neighbours' PatchMatch depths stay on
             the pixel's PatchMatch plane within this fraction of its depth (occlusion edges
             fail); >= 0, or None: no such test. Default 0.04.
@@ -579,7 +582,7 @@ class DensifyConfig(CheckedConfig):
     budget_fraction: float | None = field(default=None, metadata=at_least(0))
     initial_opacity: float = field(default=0.5, metadata=within(0, 1, low_open=True, high_open=True))
     alpha_threshold: float = field(default=0.5, metadata=within(0, 1))
-    seed_depth_footprints: float = field(default=0.88, metadata=at_least(0))
+    seed_depth_footprints: float = field(default=2.5, metadata=at_least(0))
     seed_max_plane_deviation: float | None = field(default=0.04, metadata=at_least(0))
     seed_behind_surface: bool = False
     thin_scale_ratio: float = field(default=0.1, metadata=within(0, 1, low_open=True))
