@@ -110,10 +110,10 @@ def test_the_budget_caps_the_appends_of_the_whole_run_at_a_fraction_of_the_model
 
 
 def test_seeding_threshold_is_a_number_of_pixel_footprints():
-    """The same number of footprints at any resolution: the CPU preset's 0.88 is 0.5 % of the depth
-    at the bundled scenes' 128 px (f = 175.8) and 2 % at this file's 40 px (f = 44)."""
+    """The same number of footprints at any resolution: the CPU preset's 2.5 is 1.42 % of the depth
+    at the bundled scenes' 128 px (f = 175.8) and 5.68 % at this file's 40 px (f = 44)."""
     k = PolarConfig.cpu_demo().densify.seed_depth_footprints
-    for focal, relative in ((175.84, 0.005), (44.0, 0.02)):
+    for focal, relative in ((175.84, 0.01422), (44.0, 0.05682)):
         K = torch.tensor([[focal, 0.0, 20.0], [0.0, focal, 20.0], [0.0, 0.0, 1.0]])
         assert abs(seed_relative_depth(k, K) - relative) < 1e-4
     # a render 1.5 footprints behind PatchMatch is wrong, 0.5 footprints behind is not
