@@ -58,6 +58,7 @@ def _config() -> PolarConfig:
     cfg.densify.filters.max_reprojection_px = 2.0
     cfg.densify.filters.min_consistent_views = 1
     cfg.densify.seed_max_plane_deviation = None
+    cfg.densify.seed_depth_footprints = 0.88  # a crude model's shallow errors seeded too (default 2.5)
     return cfg
 
 

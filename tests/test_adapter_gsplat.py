@@ -163,6 +163,7 @@ def _hooks(views: list[View]) -> PolarHooks:
     d.filters.max_relative_depth = 0.05
     d.filters.max_reprojection_px = 2.0
     d.seed_max_plane_deviation = None
+    d.seed_depth_footprints = 0.88  # a crude model's shallow errors seeded too (default 2.5)
     cfg.losses.depth_normal_from_iter = 20
     hooks = PolarHooks(cfg)
     hooks.preprocess(views)
