@@ -8,7 +8,6 @@ import torch
 
 import polargs_plugin.service.adapters as service_adapters
 from polargs_adapters.gof import GofAdapter, attach
-from polargs_plugin import PolarConfig
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.config import LossConfig
@@ -16,6 +15,7 @@ from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.service.adapters import ENV_DATA
 from polargs_plugin.service.data import Dataset
 from polargs_plugin.types import NewGaussians
+from adapter_config import rough_model_config
 from standins import gof
 
 SIZE = 40
@@ -48,22 +48,8 @@ def _trainer(scene, n=400):
     return gof.Scene(cameras), model
 
 
-def _config() -> PolarConfig:
-    cfg = PolarConfig.synthetic()
-    cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 10, 40, 10
-    cfg.losses.depth_normal_from_iter = 20
-    # a rough 40-px model after a few steps: loose filters, so that Dense appends (the plumbing
-    # is under test here, not PatchMatch's accuracy)
-    cfg.densify.filters.max_relative_depth = 0.05
-    cfg.densify.filters.max_reprojection_px = 2.0
-    cfg.densify.filters.min_consistent_views = 1
-    cfg.densify.seed_max_plane_deviation = None
-    cfg.densify.seed_depth_footprints = 0.88  # a crude model's shallow errors seeded too (default 2.5)
-    return cfg
-
-
 def _adapter(trainer_scene, model, views, render=gof.render, **kwargs) -> GofAdapter:
-    return GofAdapter(trainer_scene, model, None, render, views, config=kwargs.pop("config", _config()),
+    return GofAdapter(trainer_scene, model, None, render, views, config=kwargs.pop("config", rough_model_config()),
                       render_kwargs={"kernel_size": KERNEL_SIZE}, **kwargs)
 
 
@@ -174,7 +160,7 @@ def test_hooks_see_the_raw_scales_and_opacities(scene) -> None:
     state = adapter.gaussian_state()
     assert torch.equal(state.scales, model.get_scaling) and torch.equal(state.opacities, model.get_opacity[:, 0])
     assert not torch.equal(state.scales, model.get_scaling_with_3D_filter)
-    cfg = _config()
+    cfg = rough_model_config()
     cfg.correction.enabled = False
     cfg.losses.use_normal = False
     adapter = _adapter(trainer_scene, model, scene.views, config=cfg)

@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from polargs_adapters.graphdeco import GraphdecoAdapter
-from polargs_plugin import PolarConfig
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.kit import depth_from_inverse
+from adapter_config import rough_model_config
 from standins import inria
 
 SIZE = 40
@@ -28,23 +28,9 @@ def _trainer(scene, version=2024, n=400):
     return inria.Scene(cameras), inria.make_model(points, colors, version=version)
 
 
-def _config() -> PolarConfig:
-    cfg = PolarConfig.synthetic()
-    cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 10, 40, 10
-    cfg.losses.depth_normal_from_iter = 20
-    # a rough 40-px model after a few steps: loose filters, so that Dense appends (the plumbing
-    # is under test here, not PatchMatch's accuracy)
-    cfg.densify.filters.max_relative_depth = 0.05
-    cfg.densify.filters.max_reprojection_px = 2.0
-    cfg.densify.filters.min_consistent_views = 1
-    cfg.densify.seed_max_plane_deviation = None
-    cfg.densify.seed_depth_footprints = 0.88  # a crude model's shallow errors seeded too (default 2.5)
-    return cfg
-
-
 def test_views_carry_the_cameras_geometry_and_the_datasets_stokes(scene) -> None:
     trainer_scene, model = _trainer(scene)
-    adapter = GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=_config())
+    adapter = GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=rough_model_config())
     for view in scene.views:
         got = adapter.views[view.name]
         torch.testing.assert_close(got.world_to_camera, view.world_to_camera, atol=1e-12, rtol=0)
@@ -56,7 +42,7 @@ def test_half_resolution_trainer_gets_area_averaged_stokes(scene) -> None:
     half = [v for v in generate_scene("bumpy_mixed", num_views=8, width=SIZE // 2, height=SIZE // 2).views]
     cameras = [inria.Camera(v) for v in half]
     _, model = _trainer(scene)
-    adapter = GraphdecoAdapter(inria.Scene(cameras), model, None, inria.render, scene.views, config=_config())
+    adapter = GraphdecoAdapter(inria.Scene(cameras), model, None, inria.render, scene.views, config=rough_model_config())
     got = adapter.views[half[0].name]
     assert got.stokes.shape[-2:] == (SIZE // 2, SIZE // 2)
     full = scene.views[0].stokes
@@ -67,7 +53,7 @@ def test_missing_polarimetric_view_names_both_sides(scene) -> None:
     trainer_scene, model = _trainer(scene)
     trainer_scene.cameras[2].image_name = "IMG_0042"
     with pytest.raises(ValueError, match=r"no view for 1 of the trainer's 8 images \(e.g. \['IMG_0042'\]\)"):
-        GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=_config())
+        GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=rough_model_config())
 
 
 def test_render_out_of_a_flat_wall_is_in_the_project_conventions() -> None:
@@ -86,7 +72,7 @@ def test_render_out_of_a_flat_wall_is_in_the_project_conventions() -> None:
         model._scaling.copy_(torch.log(torch.tensor([0.12, 0.12, 1e-6])).expand(81, 3))
         model._opacity.fill_(2.0)
     camera = inria.Camera(view)
-    adapter = GraphdecoAdapter(inria.Scene([camera]), model, None, inria.render, [view], config=_config())
+    adapter = GraphdecoAdapter(inria.Scene([camera]), model, None, inria.render, [view], config=rough_model_config())
     pkg = inria.render(camera, model, None, torch.zeros(3))
     out = adapter.render_out(camera, pkg)
     reference = rasterize(model.get_xyz, model.get_rotation, model.get_scaling, model.get_opacity[:, 0],
@@ -107,7 +93,7 @@ def test_render_out_of_a_flat_wall_is_in_the_project_conventions() -> None:
 
 def test_extra_passes_leave_the_densification_statistics_alone(scene) -> None:
     trainer_scene, model = _trainer(scene)
-    cfg = _config()
+    cfg = rough_model_config()
     cfg.correction.enabled = False  # only geometry terms: nothing of them may reach viewspace_points
     cfg.losses.use_scale = False
     adapter = GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=cfg)
@@ -123,7 +109,7 @@ def test_extra_passes_leave_the_densification_statistics_alone(scene) -> None:
 @pytest.mark.parametrize("version", [2024, pytest.param(2023, marks=pytest.mark.slow)])
 def test_fifty_steps_lower_the_loss_and_append_with_consistent_state(scene, version) -> None:
     trainer_scene, model = _trainer(scene, version=version)
-    adapter = GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=_config())
+    adapter = GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=rough_model_config())
     cameras = trainer_scene.getTrainCameras()
     background = torch.zeros(3)
     losses, appended = [], 0

@@ -39,7 +39,7 @@ from polargs_adapters.gsplat import (  # noqa: E402
     sh_colors,
     view_from_gsplat,
 )
-from polargs_plugin import PolarConfig, PolarHooks  # noqa: E402
+from polargs_plugin import PolarHooks  # noqa: E402
 from polargs_plugin.backends.reference.binning import bin_gaussians  # noqa: E402
 from polargs_plugin.backends.reference.composite_torch import composite_torch  # noqa: E402
 from polargs_plugin.backends.reference.projection import project_gaussians  # noqa: E402
@@ -49,6 +49,7 @@ from polargs_plugin.kit import logit, rgb_to_sh  # noqa: E402
 from polargs_plugin.losses import photometric_loss  # noqa: E402
 from polargs_plugin.io import PolarInputError  # noqa: E402
 from polargs_plugin.types import NewGaussians, View  # noqa: E402
+from adapter_config import rough_model_config  # noqa: E402
 
 SIZE = 40
 SH_DEGREE = 1
@@ -153,18 +154,8 @@ def _splats(views: list[View], n: int = 300, seed: int = 0):
 
 
 def _hooks(views: list[View]) -> PolarHooks:
-    cfg = PolarConfig.synthetic()
-    d = cfg.densify
-    d.start_iter, d.end_iter, d.interval = 10, 40, 10
-    d.patchmatch.iterations = 2
-    # a crude 40 px model of 300 Gaussians: looser multi-view checks than the paper's, so that
-    # Dense has something to append within 50 steps (its quality is tested elsewhere)
-    d.filters.min_consistent_views = 1
-    d.filters.max_relative_depth = 0.05
-    d.filters.max_reprojection_px = 2.0
-    d.seed_max_plane_deviation = None
-    d.seed_depth_footprints = 0.88  # a crude model's shallow errors seeded too (default 2.5)
-    cfg.losses.depth_normal_from_iter = 20
+    cfg = rough_model_config()
+    cfg.densify.patchmatch.iterations = 2
     hooks = PolarHooks(cfg)
     hooks.preprocess(views)
     return hooks

@@ -15,6 +15,7 @@ from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.ssim import ssim_map
+from adapter_config import rough_model_config
 from standins import pgsr
 
 SIZE = 40
@@ -32,16 +33,7 @@ def _trainer(scene, n=400, max_all_points=6_000_000):
 
 
 def _config() -> PolarConfig:
-    cfg = PolarConfig.synthetic()
-    cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 10, 40, 10
-    cfg.losses.depth_normal_from_iter = 20
-    # a rough 40-px model after a few steps: loose filters, so that Dense appends (the plumbing
-    # is under test here, not PatchMatch's accuracy)
-    cfg.densify.filters.max_relative_depth = 0.05
-    cfg.densify.filters.max_reprojection_px = 2.0
-    cfg.densify.filters.min_consistent_views = 1
-    cfg.densify.seed_max_plane_deviation = None
-    cfg.densify.seed_depth_footprints = 0.88  # a crude model's shallow errors seeded too (default 2.5)
+    cfg = rough_model_config()
     cfg.densify.seed_behind_surface = True  # wherever the render disagrees with PatchMatch
     return cfg
 

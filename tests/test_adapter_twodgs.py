@@ -10,13 +10,13 @@ import torch
 
 import polargs_plugin.service.adapters as service_adapters
 from polargs_adapters.twodgs import TwoDGSAdapter, attach
-from polargs_plugin import PolarConfig
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.config import LossConfig
 from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.service.adapters import ENV_DATA
 from polargs_plugin.service.data import Dataset
 from polargs_plugin.types import NewGaussians
+from adapter_config import rough_model_config
 from standins import twodgs
 
 SIZE = 40
@@ -34,22 +34,8 @@ def _trainer(scene, n=400):
     return twodgs.Scene(cameras), twodgs.make_model(points, colors)
 
 
-def _config() -> PolarConfig:
-    cfg = PolarConfig.synthetic()
-    cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 10, 40, 10
-    cfg.losses.depth_normal_from_iter = 20
-    # a rough 40-px model after a few steps: loose filters, so that Dense appends (the plumbing
-    # is under test here, not PatchMatch's accuracy)
-    cfg.densify.filters.max_relative_depth = 0.05
-    cfg.densify.filters.max_reprojection_px = 2.0
-    cfg.densify.filters.min_consistent_views = 1
-    cfg.densify.seed_max_plane_deviation = None
-    cfg.densify.seed_depth_footprints = 0.88  # a crude model's shallow errors seeded too (default 2.5)
-    return cfg
-
-
 def _adapter(trainer_scene, model, views, **kwargs) -> TwoDGSAdapter:
-    return TwoDGSAdapter(trainer_scene, model, None, twodgs.render, views, config=kwargs.pop("config", _config()),
+    return TwoDGSAdapter(trainer_scene, model, None, twodgs.render, views, config=kwargs.pop("config", rough_model_config()),
                          **kwargs)
 
 
