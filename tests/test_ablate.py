@@ -105,6 +105,39 @@ def test_pool_reports_failed_cells_with_logs(tmp_path):
         run_cell(cells[0])
 
 
+@pytest.mark.parametrize("stop", ["interrupted", "failed"])
+def test_a_cell_stopped_while_setting_up_leaves_its_log_and_no_temporary_folder(tmp_path, monkeypatch, stop):
+    """A stop that lands between the cell's temporary folder and its log (a scheduler's SIGTERM
+    under load) still leaves the attempt's log where the next attempt or the user looks: an
+    interruption appends to the partial log (after the earlier attempts' words), a failure writes
+    the failure log; no .tmp folder is left either way."""
+    import polargs_plugin.ablation.cell as cell_module
+
+    cell = expand([SceneSpec("s", str(tmp_path / "s"))], ["base"], [0], tmp_path / "out")[0]
+    cell.partial_dir.mkdir(parents=True)
+    (cell.partial_dir / "attempts.log").write_text("first attempt\n")
+    error = KeyboardInterrupt() if stop == "interrupted" else PermissionError("run.log: permission denied")
+
+    def refuse(path, *args, **kwargs):
+        if Path(path).name == "run.log":
+            raise error
+        return open(path, *args, **kwargs)
+
+    monkeypatch.setattr(cell_module, "open", refuse, raising=False)
+    if stop == "interrupted":
+        with pytest.raises(KeyboardInterrupt):
+            run_cell(cell)
+        text = (cell.partial_dir / "attempts.log").read_text()
+        assert text.startswith("first attempt\n\nINTERRUPTED (KeyboardInterrupt) at ")
+        assert not cell.log_path.exists()
+    else:
+        with pytest.raises(CellFailed, match="permission denied"):
+            run_cell(cell)
+        assert "FAILED: PermissionError: run.log: permission denied" in cell.log_path.read_text()
+        assert (cell.partial_dir / "attempts.log").exists()  # an OSError keeps what a resume needs
+    assert not list((tmp_path / "out").glob(".tmp-*")) and not cell.run_dir.exists()
+
+
 @pytest.mark.slow
 def test_mesh_error_is_the_exact_signed_distance(tmp_path):
     """mesh_error.npz of the report: vertices of spheres of radius 1.05 and 0.95 against the unit GT

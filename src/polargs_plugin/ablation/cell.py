@@ -43,7 +43,7 @@ import time
 import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, TextIO
 
 from polargs_plugin.ablation.artifacts import EVAL_CULL_DILATION, write_curves, write_report_data
 from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, gt_mesh_path
@@ -215,15 +215,18 @@ def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
         shutil.rmtree(partial, ignore_errors=True)  # left by a run interrupted right after publishing
         return read_summary(cell.run_dir)
     out = Path(cell.out)
-    out.mkdir(parents=True, exist_ok=True)
     tmp = out / f".tmp-{cell.name}-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    log_file = open(tmp / "run.log", "w", buffering=1)
-    with contextlib.suppress(OSError):  # what the interrupted attempts printed
-        log_file.write((partial / PARTIAL_LOG).read_text())
     report = progress or (lambda phase, done, total: None)
+    log_file = None
+    # Everything from the first write on is inside the try: a stop signalled while the temporary
+    # folder is being set up still leaves the attempt's log and no .tmp folder.
     try:
+        out.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        log_file = open(tmp / "run.log", "w", buffering=1)
+        with contextlib.suppress(OSError):  # what the interrupted attempts printed
+            log_file.write((partial / PARTIAL_LOG).read_text())
         with contextlib.redirect_stdout(log_file), contextlib.redirect_stderr(log_file):
             print(f"cell {cell.name}\n{json.dumps(cell.to_dict(), indent=2)}", flush=True)
             print(f"started {_now()} on {platform.node()} (pid {os.getpid()}, "
@@ -247,27 +250,34 @@ def run_cell(cell: Cell, progress: Progress | None = None) -> dict[str, Any]:
     except BaseException as err:
         if _is_interruption(err):
             # not a failure: keep the periodic checkpoint (and this attempt's output) for the next attempt
-            with contextlib.suppress(Exception):
-                log_file.write(f"\nINTERRUPTED ({type(err).__name__}) at {_now()}; the next attempt resumes "
-                               "from the last periodic checkpoint\n")
-            log_file.close()
-            with contextlib.suppress(OSError):
-                partial.mkdir(parents=True, exist_ok=True)
-                os.replace(tmp / "run.log", partial / PARTIAL_LOG)
+            _save_log(log_file, tmp, partial / PARTIAL_LOG,
+                      f"\nINTERRUPTED ({type(err).__name__}) at {_now()}; the next attempt resumes "
+                      "from the last periodic checkpoint\n", append=True)
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         message = _one_line(err)
-        with contextlib.suppress(Exception):
-            log_file.write("\n" + traceback.format_exc())
-            log_file.write(f"\nFAILED: {message}\n")
-        log_file.close()
-        cell.log_path.parent.mkdir(parents=True, exist_ok=True)
-        with contextlib.suppress(OSError):
-            os.replace(tmp / "run.log", cell.log_path)
+        _save_log(log_file, tmp, cell.log_path, "\n" + traceback.format_exc() + f"\nFAILED: {message}\n",
+                  append=False)
         shutil.rmtree(tmp, ignore_errors=True)
         if not isinstance(err, OSError):  # a failed write (a full disk) leaves an intact checkpoint to resume
             shutil.rmtree(partial, ignore_errors=True)  # a failed run starts over (after a fix)
         raise CellFailed(cell.name, str(cell.log_path), message) from None
+
+
+def _save_log(log_file: TextIO | None, tmp: Path, dest: Path, last_words: str, *, append: bool) -> None:
+    """End an attempt's log with ``last_words`` and move it to ``dest``. Without an opened log (the
+    attempt stopped while setting up) the words go to ``dest`` directly, after what it holds when
+    ``append``; no error from here hides the one being handled."""
+    with contextlib.suppress(Exception):
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        if log_file is None:
+            with open(dest, "a" if append else "w") as direct:
+                direct.write(last_words)
+            return
+        with contextlib.suppress(Exception):
+            log_file.write(last_words)
+        log_file.close()
+        os.replace(tmp / "run.log", dest)
 
 
 def _now() -> str:
