@@ -107,6 +107,7 @@ BAD_VALUES = [
     ("train", "init_resolution", 0, "a positive integer"),
     ("train", "initial_opacity", 0.0, "in (0, 1)"),
     ("train", "eps2d", -0.3, ">= 0"),
+    ("train", "tile_size", 0, "a positive integer"),
     ("train", "device", "gpu", "a torch device such as 'cpu' or 'cuda:0'"),
     ("train", "log_every", 0, "a positive integer"),
     ("train", "lrs.means_init", -1.6e-4, ">= 0"),
@@ -142,6 +143,7 @@ BAD_MODES = [
     ("polar", "densify.patchmatch.ncc_backend", "cuda", "'auto', 'torch', 'numba'"),
     ("polar", "densify.filters.azimuth_model", "weak", "'orthographic', 'perspective'"),
     ("train", "backend", "cuda", "'auto', 'torch', 'numba'"),
+    ("train", "order", "depth", "'center', 'ray'"),
     ("train", "threads.numba_layer", "openmp", "'workqueue', 'omp', 'tbb', 'default'"),
     ("train", "threads.wait_policy", "spin", "'passive', 'active' or null"),
 ]

@@ -239,6 +239,37 @@ def test_the_model_renders_and_saves_its_own_dilation():
         GaussianModel(params, sh_degree=0, eps2d=-1.0)
 
 
+def test_the_model_renders_and_saves_its_own_compositing_order():
+    """order and tile_size belong to the model as eps2d does: every render uses them (a render
+    with them passed explicitly is the same), a checkpoint keeps them, and an older checkpoint
+    without them renders as vanilla did ("center", 16-px tiles)."""
+    from polargs_plugin.backends.reference.rasterizer import rasterize
+
+    view = _look_at_view([0.0, 0.0, 4.0], size=24, f=30.0, radius=0.5)
+    gen = torch.Generator().manual_seed(3)
+    n = 40
+    params = {
+        "means": torch.randn(n, 3, generator=gen) * 0.3, "sh_dc": torch.rand(n, 1, 3, generator=gen),
+        "sh_rest": torch.zeros(n, 0, 3), "opacity_logits": torch.full((n,), 2.0),
+        "log_scales": torch.log(torch.rand(n, 3, generator=gen) * 0.2 + 0.01), "quats": torch.randn(n, 4, generator=gen),
+    }
+    model = GaussianModel(params, sh_degree=0, order="ray", tile_size=2)
+    state = model.state()
+    explicit = rasterize(state.means, state.quats, state.scales, state.opacities, model.sh, view.K, view.world_to_camera,
+                         view.width, view.height, eps2d=model.eps2d, order="ray", tile_size=2)
+    assert torch.equal(model.render(view).color, explicit.color)
+    assert not torch.equal(GaussianModel(params, sh_degree=0).render(view).color, explicit.color)  # the order shows
+    restored = GaussianModel.from_checkpoint(copy.deepcopy(model.checkpoint()))
+    assert (restored.order, restored.tile_size) == ("ray", 2) and torch.equal(restored.render(view).color, explicit.color)
+    old = GaussianModel(params, sh_degree=0).checkpoint()
+    del old["order"], old["tile_size"]
+    assert (GaussianModel.from_checkpoint(old).order, GaussianModel.from_checkpoint(old).tile_size) == ("center", 16)
+    with pytest.raises(ValueError, match="order"):
+        GaussianModel(params, sh_degree=0, order="nearest")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="tile_size"):
+        GaussianModel(params, sh_degree=0, tile_size=0)
+
+
 def _look_at_view(eye, size=48, f=60.0, name="v", radius=None) -> View:
     eye = torch.tensor(eye, dtype=torch.float64)
     z = -eye / eye.norm()

@@ -49,8 +49,11 @@ def _random_scene(n: int, width: int, height: int, seed: int, dtype=torch.float6
     return [t.to(dtype) for t in tensors], K, w2c
 
 
-def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, height, near=0.01, far=100.0):
-    """Independent float64 renderer: every pixel walks every Gaussian (sorted by mean z)."""
+def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, height, near=0.01, far=100.0,
+                    order="center"):
+    """Independent float64 renderer: every pixel walks every Gaussian, sorted by mean z
+    (``order="center"``) or, per pixel, by the depth of its ray's maximum density point
+    (``order="ray"``, ties in mean-z order)."""
     means, quats, scales = (np.asarray(x, dtype=np.float64) for x in (means, quats, scales))
     opacities, colors = np.asarray(opacities, np.float64), np.asarray(colors, np.float64)
     K, w2c = np.asarray(K, np.float64), np.asarray(w2c, np.float64)
@@ -59,11 +62,9 @@ def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, heig
     pix = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], -1)
     rays = np.concatenate([pix, np.ones((pix.shape[0], 1))], -1) @ np.linalg.inv(K).T
     n_pix = pix.shape[0]
-    trans = np.ones(n_pix)
-    done = np.zeros(n_pix, bool)
-    out = {k: np.zeros((n_pix, c)) for k, c in (("color", 3), ("dsum", 1), ("normal", 3), ("median", 1), ("dist", 1))}
-    order = np.argsort(means @ R.T[:, 2] + t[2])
-    for i in order:
+    # every Gaussian's alpha, depth, normal and plane distance at every pixel, in mean-z order
+    alphas, depths, normals, dists, cols = [], [], [], [], []
+    for i in np.argsort(means @ R.T[:, 2] + t[2]):
         mu = R @ means[i] + t
         if not near <= mu[2] <= far:
             continue
@@ -76,22 +77,33 @@ def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, heig
         mean2 = (K @ (mu / z))[:2]
         d = pix - mean2
         power = 0.5 * np.einsum("pi,ij,pj->p", d, np.linalg.inv(cov2), d)
-        alpha = np.minimum(ALPHA_MAX, opacities[i] * np.exp(-power))
+        alphas.append(np.minimum(ALPHA_MAX, opacities[i] * np.exp(-power)))
         prec = np.linalg.inv(cov)
         depth = (rays @ prec @ mu) / np.einsum("pi,ij,pj->p", rays, prec, rays)
         spread = CLAMP_SIGMAS * math.sqrt(cov[2, 2])
-        depth = np.clip(depth, z - spread, z + spread)
+        depths.append(np.clip(depth, z - spread, z + spread))
         evals, evecs = np.linalg.eigh(cov)
-        normal = evecs[:, 0] * (-1.0 if evecs[:, 0] @ mu > 0 else 1.0)
+        normals.append(evecs[:, 0] * (-1.0 if evecs[:, 0] @ mu > 0 else 1.0))
+        dists.append(-(normals[-1] @ mu))  # the splat's plane n . x = -d, d = -n . mu
+        cols.append(colors[i])
+    alphas, depths = np.array(alphas).reshape(-1, n_pix), np.array(depths).reshape(-1, n_pix)
+    normals, dists, cols = np.array(normals).reshape(-1, 3), np.array(dists), np.array(cols).reshape(-1, 3)
+    ranks = np.argsort(depths, axis=0, kind="stable") if order == "ray" else np.arange(len(cols))[:, None].repeat(n_pix, 1)
+    trans = np.ones(n_pix)
+    done = np.zeros(n_pix, bool)
+    out = {k: np.zeros((n_pix, c)) for k, c in (("color", 3), ("dsum", 1), ("normal", 3), ("median", 1), ("dist", 1))}
+    every = np.arange(n_pix)
+    for rank in ranks:  # the rank-th Gaussian of each pixel
+        alpha, depth = alphas[rank, every], depths[rank, every]
         use = ~done & (alpha >= ALPHA_MIN)
         stop = use & (trans * (1 - alpha) < T_MIN)
         done |= stop
         use &= ~stop
         w = np.where(use, alpha * trans, 0.0)
-        out["color"] += w[:, None] * colors[i]
-        out["normal"] += w[:, None] * normal
+        out["color"] += w[:, None] * cols[rank]
+        out["normal"] += w[:, None] * normals[rank]
         out["dsum"][:, 0] += w * depth
-        out["dist"][:, 0] += w * -(normal @ mu)  # the splat's plane n . x = -d, d = -n . mu
+        out["dist"][:, 0] += w * dists[rank]
         new_t = np.where(use, trans * (1 - alpha), trans)
         crossing = use & (trans >= 0.5) & (new_t < 0.5)
         out["median"][crossing, 0] = depth[crossing]
@@ -146,12 +158,15 @@ def _scene_with_occluders(seed: int, width: int, height: int, dtype=torch.float6
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_matches_dense_reference(backend: str, seed: int) -> None:
+@pytest.mark.parametrize("order", ["center", "ray"])
+def test_matches_dense_reference(backend: str, seed: int, order: str) -> None:
+    """Both orders against the dense renderer; "ray" with one-pixel tiles is exact per pixel."""
     width, height = 22, 17
     params, K, w2c = _scene_with_occluders(seed, width, height)
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
-    out = rasterize(*params, K, w2c, width, height, tile_size=8, backend=backend, background=bg)
-    ref = dense_reference(*params, K, w2c, width, height)
+    out = rasterize(*params, K, w2c, width, height, tile_size=8 if order == "center" else 1, backend=backend,
+                    background=bg, order=order)
+    ref = dense_reference(*params, K, w2c, width, height, order=order)
     assert ref["terminated"].any()  # the occluder stack exercises the T < 1e-4 rule
     for name in ("normal", "alpha", "depth", "median_depth", "plane_depth"):
         torch.testing.assert_close(getattr(out, name), ref[name], atol=1e-5, rtol=0, msg=name)
@@ -235,3 +250,36 @@ def test_without_plane_depth_the_other_outputs_are_the_same(backend: str) -> Non
     assert full.plane_depth is not None and bare.plane_depth is None
     for name in ("color", "depth", "median_depth", "normal", "alpha", "means2d", "radii"):
         assert torch.equal(getattr(full, name), getattr(bare, name)), name
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_ray_order_shows_the_splat_each_ray_meets_first(backend: str) -> None:
+    """Two large opaque flat splats crossing at 60 degrees in front of the camera: each pixel
+    must show the colour of the plane its ray meets first (analytic ray-plane intersection).
+    "ray" with one-pixel tiles gets every pixel right away from the crossing line's blur; mean
+    depth ("center") shows the splat with the nearer centre over the whole overlap."""
+    width = height = 32
+    K = torch.tensor([[32.0, 0, 16], [0, 32.0, 16], [0, 0, 1]], dtype=torch.float64)
+    w2c = torch.eye(4, dtype=torch.float64)
+    # plane A: through (0, 0, 2), tilted +30 deg about y; plane B: through (0.1, 0, 2.2), tilted -30 deg
+    angles, centres = (math.radians(30), math.radians(-30)), ([0.0, 0.0, 2.0], [0.1, 0.0, 2.2])
+    quats = torch.tensor([[math.cos(a / 2), 0.0, math.sin(a / 2), 0.0] for a in angles], dtype=torch.float64)
+    means = torch.tensor(centres, dtype=torch.float64)
+    scales = torch.tensor([[2.0, 2.0, 1e-4]] * 2, dtype=torch.float64)
+    colors = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    opacities = torch.tensor([0.99, 0.99], dtype=torch.float64)
+    u = (torch.arange(width, dtype=torch.float64) + 0.5 - 16) / 32  # ray x / z (rows are alike)
+    hits = []
+    for a, c in zip(angles, centres):
+        n = torch.tensor([math.sin(a), 0.0, math.cos(a)], dtype=torch.float64)  # the splat's local z in camera frame
+        hits.append((n @ torch.tensor(c, dtype=torch.float64)) / (n[0] * u + n[2]))  # camera z where the ray meets it
+    a_first = hits[0] < hits[1]
+    away = (hits[0] - hits[1]).abs() > 0.02  # a few pixels from the crossing line
+    shown = {}
+    for order, tile in (("ray", 1), ("center", 16)):
+        out = rasterize(means, quats, scales, opacities, colors, K, w2c, width, height, tile_size=tile,
+                        backend=backend, order=order, with_plane_depth=False)
+        shown[order] = out.color[0, 16] > out.color[1, 16]  # red (A) over green (B), middle row
+    assert a_first[away].any() and (~a_first[away]).any()  # both planes are in front somewhere
+    assert torch.equal(shown["ray"][away], a_first[away])
+    assert bool(shown["center"].all())  # A's centre is nearer: A everywhere, wrong where B is in front

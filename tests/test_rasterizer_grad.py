@@ -16,8 +16,8 @@ def _outputs(out) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("backend", ["torch", "numba"])
-@pytest.mark.parametrize("sh", [False, True])
-def test_gradcheck(backend: str, sh: bool) -> None:
+@pytest.mark.parametrize(("sh", "order"), [(False, "center"), (True, "center"), (False, "ray")])
+def test_gradcheck(backend: str, sh: bool, order: str) -> None:
     width, height = 10, 8
     (means, quats, scales, opac, colors), K, w2c = _random_scene(5, width, height, seed=4)
     scales = scales * 2.5  # a few pixels wide: every Gaussian overlaps several pixels and others
@@ -26,7 +26,7 @@ def test_gradcheck(backend: str, sh: bool) -> None:
         colors = torch.randn(5, 9, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)) * 0.3
 
     def render(m, q, s, o, c):
-        return _outputs(rasterize(m, q, s, o, c, K, w2c, width, height, tile_size=4, backend=backend))
+        return _outputs(rasterize(m, q, s, o, c, K, w2c, width, height, tile_size=4, backend=backend, order=order))
 
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
     assert render(*inputs).abs().sum() > 0
@@ -51,14 +51,16 @@ def test_gradcheck_edge_on_splat(backend: str) -> None:
     assert torch.autograd.gradcheck(render, inputs, eps=1e-7, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
-def test_numba_gradients_match_torch() -> None:
+@pytest.mark.parametrize("order", ["center", "ray"])
+def test_numba_gradients_match_torch(order: str) -> None:
     width, height = 22, 17
     params, K, w2c = _scene_with_occluders(1, width, height)
     weights = torch.rand(10, height, width, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
     grads = {}
     for backend in ("torch", "numba"):
         leaves = [p.clone().requires_grad_(True) for p in params]
-        out = rasterize(*leaves, K, w2c, width, height, tile_size=8, backend=backend)
+        out = rasterize(*leaves, K, w2c, width, height, tile_size=8 if order == "center" else 2, backend=backend,
+                        order=order)
         (_outputs(out).reshape(10, height, width) * weights).sum().backward()
         grads[backend] = [p.grad for p in leaves] + [out.means2d.grad]
     for g_torch, g_numba in zip(grads["torch"], grads["numba"]):

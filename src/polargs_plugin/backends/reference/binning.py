@@ -16,7 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["TileBins", "bin_gaussians", "counted_tile_lists", "sorted_tile_lists"]
+__all__ = ["DEFAULT_TILE_SIZE", "TileBins", "bin_gaussians", "counted_tile_lists", "sorted_tile_lists"]
+
+DEFAULT_TILE_SIZE = 16  # pixels, vanilla 3DGS's
 
 
 class TileBins(NamedTuple):
@@ -41,7 +43,7 @@ class TileBins(NamedTuple):
 
 @torch.no_grad()
 def bin_gaussians(
-    means2d: Tensor, extents: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16
+    means2d: Tensor, extents: Tensor, depths: Tensor, width: int, height: int, tile_size: int = DEFAULT_TILE_SIZE
 ) -> TileBins:
     """Per screen tile, the Gaussians that can touch it, front to back: the (tile, Gaussian) pairs
     in the order of the key tile_id * N + depth rank.

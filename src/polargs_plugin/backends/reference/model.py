@@ -21,7 +21,9 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
+from polargs_plugin.backends.reference.binning import DEFAULT_TILE_SIZE
 from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D
+from polargs_plugin.backends.reference.rasterizer import CompositeOrder
 from polargs_plugin.config import CheckedConfig, at_least, satisfies, within
 from polargs_plugin.geometry import quat_to_rotmat, rgb_to_sh
 from polargs_plugin.kit.append import RAW_NAMES, edit_rows, logit, pad_rows, raw_from_new
@@ -133,11 +135,15 @@ class GaussianModel(nn.Module):
         eps2d: the screen-space dilation (pixels^2) every render of these Gaussians uses
             (``rasterize``): the parameters are fitted to it, so it belongs to the model and is
             saved with it.
+        order: the compositing order every render uses (``rasterize``'s ``order``), kept and
+            saved with the model for the same reason. Default "center" (vanilla).
+        tile_size: the tile edge in pixels every render uses (with ``order="ray"`` it sets how
+            closely the order follows each pixel's ray); >= 1. Default 16 (vanilla).
     """
 
     def __init__(
         self, params: dict[str, Tensor], sh_degree: int, extent: float = 1.0, lrs: LearningRates | None = None,
-        eps2d: float = DEFAULT_EPS2D,
+        eps2d: float = DEFAULT_EPS2D, order: CompositeOrder = "center", tile_size: int = DEFAULT_TILE_SIZE,
     ):
         super().__init__()
         missing = set(PARAM_NAMES) - set(params)
@@ -162,6 +168,12 @@ class GaussianModel(nn.Module):
         if not eps2d >= 0.0:
             raise ValueError(f"GaussianModel: eps2d must be >= 0 (pixels^2), got {eps2d}")
         self.eps2d = float(eps2d)
+        if order not in ("center", "ray"):
+            raise ValueError(f"GaussianModel: order must be 'center' or 'ray', got {order!r}")
+        if int(tile_size) != tile_size or tile_size < 1:
+            raise ValueError(f"GaussianModel: tile_size must be a whole number of pixels >= 1, got {tile_size}")
+        self.order: CompositeOrder = order
+        self.tile_size = int(tile_size)
         self.lrs = lrs or LearningRates()
         self.optimizer = torch.optim.Adam(
             [
@@ -185,6 +197,8 @@ class GaussianModel(nn.Module):
         initial_opacity: float = 0.1,
         lrs: LearningRates | None = None,
         eps2d: float = DEFAULT_EPS2D,
+        order: CompositeOrder = "center",
+        tile_size: int = DEFAULT_TILE_SIZE,
     ) -> "GaussianModel":
         """Vanilla 3DGS initialisation from a point cloud.
 
@@ -212,7 +226,7 @@ class GaussianModel(nn.Module):
             "log_scales": torch.log(_knn_scale(points)).unsqueeze(1).repeat(1, 3),
             "quats": quats,
         }
-        return cls(params, sh_degree=sh_degree, extent=extent, lrs=lrs, eps2d=eps2d)
+        return cls(params, sh_degree=sh_degree, extent=extent, lrs=lrs, eps2d=eps2d, order=order, tile_size=tile_size)
 
     # ------------------------------------------------------------------ activations
     @property
@@ -246,8 +260,8 @@ class GaussianModel(nn.Module):
 
     def render(self, view: View, background: Tensor | None = None, state: GaussianState | None = None,
                **kwargs) -> RenderOut:
-        """Render ``view`` with the reference rasterizer at the model's ``eps2d`` (extra ``kwargs``
-        go to ``rasterize``).
+        """Render ``view`` with the reference rasterizer at the model's ``eps2d``, ``order`` and
+        ``tile_size`` (extra ``kwargs`` go to ``rasterize``).
 
         ``state``: this model's :meth:`state`, when the caller already has it (the trainer passes
         the one it hands to the hooks, so the activations are computed and differentiated once)."""
@@ -266,7 +280,7 @@ class GaussianModel(nn.Module):
             view.width,
             view.height,
             background=background,
-            **{"eps2d": self.eps2d, **kwargs},
+            **{"eps2d": self.eps2d, "order": self.order, "tile_size": self.tile_size, **kwargs},
         )
 
     # ------------------------------------------------------------- learning rates
@@ -350,15 +364,18 @@ class GaussianModel(nn.Module):
             "active_sh_degree": self.active_sh_degree,
             "extent": self.extent,
             "eps2d": self.eps2d,
+            "order": self.order,
+            "tile_size": self.tile_size,
         }
 
     @classmethod
     def from_checkpoint(cls, data: dict, lrs: LearningRates | None = None, device: str | torch.device = "cpu") -> "GaussianModel":
         """Inverse of :meth:`checkpoint` (the optimizer state, its moments and rates included)."""
         params = {name: t.to(device) for name, t in data["params"].items()}
-        # Checkpoints older than the eps2d entry were trained at vanilla's dilation.
+        # Checkpoints older than the eps2d / order entries were trained at vanilla's settings.
         model = cls(params, sh_degree=int(data["max_sh_degree"]), extent=float(data["extent"]), lrs=lrs,
-                    eps2d=float(data.get("eps2d", DEFAULT_EPS2D)))
+                    eps2d=float(data.get("eps2d", DEFAULT_EPS2D)), order=str(data.get("order", "center")),  # type: ignore[arg-type]
+                    tile_size=int(data.get("tile_size", DEFAULT_TILE_SIZE)))
         model.optimizer.load_state_dict(data["optimizer"])
         model.active_sh_degree = int(data["active_sh_degree"])
         return model
