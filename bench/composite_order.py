@@ -29,11 +29,13 @@ import os
 import numpy as np
 import open3d as o3d
 import torch
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
 from scipy.ndimage import distance_transform_edt
 
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.data.family import generate_family_scene, parse_family
 from polargs_plugin.data.synthetic import SyntheticScene, generate_scene
+from polargs_plugin.densify.seeding import frames_from_normals
 from polargs_plugin.geometry import rgb_to_sh
 
 ORDERS = (("center", 16), ("ray", 1))
@@ -97,11 +99,10 @@ def footprint(scene: SyntheticScene) -> float:
 
 
 def tangent_quaternions(normals: np.ndarray) -> torch.Tensor:
-    """(N, 4) wxyz rotations taking the splat's local z (its shortest axis) to ``normals``."""
-    z = np.array([0.0, 0.0, 1.0])
-    quats = np.concatenate([(1.0 + normals[:, 2])[:, None], np.cross(np.broadcast_to(z, normals.shape), normals)], 1)
-    quats[normals[:, 2] < -0.9999] = [0.0, 1.0, 0.0, 0.0]  # the half turn the formula cannot give
-    return torch.nn.functional.normalize(torch.tensor(quats, dtype=torch.float32), dim=1)
+    """(N, 4) wxyz rotations whose local z (the splat's shortest axis) is ``normals``, as Dense
+    orients its seeds."""
+    frames = frames_from_normals(torch.tensor(normals, dtype=torch.float32))
+    return rotation_matrix_to_quaternion(frames.contiguous())
 
 
 def errors(scene: SyntheticScene, count: int, offsets: list[float]) -> dict[str, dict[float, float]]:

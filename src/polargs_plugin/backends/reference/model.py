@@ -23,7 +23,7 @@ from torch import Tensor, nn
 
 from polargs_plugin.backends.reference.binning import DEFAULT_TILE_SIZE
 from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D
-from polargs_plugin.backends.reference.rasterizer import CompositeOrder
+from polargs_plugin.backends.reference.rasterizer import CompositeOrder, check_order
 from polargs_plugin.config import CheckedConfig, at_least, satisfies, within
 from polargs_plugin.geometry import quat_to_rotmat, rgb_to_sh
 from polargs_plugin.kit.append import RAW_NAMES, edit_rows, logit, pad_rows, raw_from_new
@@ -168,8 +168,7 @@ class GaussianModel(nn.Module):
         if not eps2d >= 0.0:
             raise ValueError(f"GaussianModel: eps2d must be >= 0 (pixels^2), got {eps2d}")
         self.eps2d = float(eps2d)
-        if order not in ("center", "ray"):
-            raise ValueError(f"GaussianModel: order must be 'center' or 'ray', got {order!r}")
+        check_order(order, "GaussianModel: order")
         if int(tile_size) != tile_size or tile_size < 1:
             raise ValueError(f"GaussianModel: tile_size must be a whole number of pixels >= 1, got {tile_size}")
         self.order: CompositeOrder = order

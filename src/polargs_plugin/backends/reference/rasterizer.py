@@ -11,7 +11,7 @@ reference and the CUDA path) or, on the numba path, the compiled
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from torch import Tensor
@@ -22,7 +22,7 @@ from .binning import DEFAULT_TILE_SIZE, TileBins, bin_gaussians
 from .composite_torch import Composite, composite_torch, pixel_depth
 from .projection import DEFAULT_EPS2D, Projection, project_gaussians
 
-__all__ = ["rasterize", "resolve_backend", "CompositeOrder"]
+__all__ = ["rasterize", "resolve_backend", "CompositeOrder", "check_order"]
 
 Backend = Literal["auto", "torch", "numba"]
 ProjectionPath = Literal["auto", "torch", "numba"]
@@ -136,6 +136,7 @@ def rasterize(
           bounding alpha >= 1/255), 0 = culled by near/far or off-screen.
     """
     _check_gaussians(means, quats, scales, opacities, colors)
+    check_order(order)
     path = resolve_backend(backend, means.device)
     camera_grad = K.requires_grad or world_to_camera.requires_grad
     _check_projection(projection, path, camera_grad)
@@ -155,8 +156,6 @@ def rasterize(
     bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
     if order == "ray":
         bins = ray_ordered(bins, proj)
-    elif order != "center":
-        raise ValueError(f"order must be 'center' or 'ray', got {order!r}")
     distances = plane_distances(proj.normals, means, world_to_camera) if with_plane_depth else None
     if path == "numba":
         from .composite_numba import composite_numba
@@ -184,6 +183,12 @@ def ray_ordered(bins: TileBins, proj: Projection) -> TileBins:
     by_key = torch.argsort(key, stable=True)
     by_tile = by_key[torch.argsort(tile[by_key], stable=True)]
     return bins._replace(gauss_ids=g[by_tile].contiguous())
+
+
+def check_order(order: str, where: str = "order") -> None:
+    """ValueError naming ``where`` unless ``order`` is one of :data:`CompositeOrder`."""
+    if order not in get_args(CompositeOrder):
+        raise ValueError(f"{where} must be one of {get_args(CompositeOrder)}, got {order!r}")
 
 
 def _check_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor) -> None:
