@@ -37,6 +37,7 @@ from polargs_plugin.data.family import generate_family_scene, parse_family
 from polargs_plugin.data.synthetic import SyntheticScene, generate_scene
 from polargs_plugin.densify.seeding import frames_from_normals
 from polargs_plugin.geometry import rgb_to_sh
+from polargs_plugin.metrics import depth_jumps
 
 ORDERS = (("center", 16), ("ray", 1))
 
@@ -82,15 +83,7 @@ def true_colours(scene: SyntheticScene, points: np.ndarray, normals: np.ndarray)
 
 def scored_pixels(depth: np.ndarray) -> np.ndarray:
     """(H, W) bool: inside the object, >= 6 px from the mask's edge and >= 3 px from a depth jump (> 5 %)."""
-    mask = depth > 0
-    jump = np.zeros_like(mask)
-    rel = np.abs(depth[:, 1:] - depth[:, :-1]) > 0.05 * np.maximum(np.minimum(depth[:, 1:], depth[:, :-1]), 1e-6)
-    jump[:, 1:] |= rel
-    jump[:, :-1] |= rel
-    rel = np.abs(depth[1:] - depth[:-1]) > 0.05 * np.maximum(np.minimum(depth[1:], depth[:-1]), 1e-6)
-    jump[1:] |= rel
-    jump[:-1] |= rel
-    return (distance_transform_edt(mask) > 6) & (distance_transform_edt(~jump) > 3)
+    return (distance_transform_edt(depth > 0) > 6) & (distance_transform_edt(~depth_jumps(depth)) > 3)
 
 
 def footprint(scene: SyntheticScene) -> float:

@@ -10,8 +10,10 @@ import torch
 
 from polargs_plugin.metrics import (
     chamfer_distance,
+    contour_distance,
     cull_to_masks,
     normal_angle_errors,
+    normal_errors_by_contour_distance,
     normal_mae,
     sample_surface,
 )
@@ -187,6 +189,68 @@ def test_normal_mae_errors():
         normal_mae([n], [n, n], [torch.ones(1, 4, 4, dtype=torch.bool)])
     with pytest.raises(ValueError, match="mask"):
         normal_angle_errors(n, n, torch.ones(4, 4, dtype=torch.bool))
+
+
+def tilted_normals(angles_deg: np.ndarray) -> torch.Tensor:
+    """(3, H, W) unit normals tilted from (0, 0, -1) by ``angles_deg`` (H, W) about the x axis."""
+    t = torch.from_numpy(np.radians(angles_deg))
+    return torch.stack([torch.zeros_like(t), torch.sin(t), -torch.cos(t)])
+
+
+def square_rings(size: int, side: int, top: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mask, ring): an axis-aligned square of ``side`` px at (top, top) in a size x size image
+    and each of its pixels' distance to the nearest pixel outside it (1 on its outer ring): for
+    a square the nearest outside pixel lies straight across the nearest side."""
+    rows, cols = np.mgrid[0:size, 0:size]
+    inside = (rows >= top) & (rows < top + side) & (cols >= top) & (cols < top + side)
+    ring = np.minimum.reduce([rows - top, top + side - 1 - rows, cols - top, top + side - 1 - cols]) + 1
+    return inside, np.where(inside, ring, 0)
+
+
+def test_contour_distance_of_a_square_is_the_distance_to_its_nearest_side():
+    mask, ring = square_rings(32, 20, 6)
+    np.testing.assert_array_equal(contour_distance(mask), ring)
+    # A depth step down the middle (columns 6-15 at 2, 16-25 at 3): columns 15 and 16 are the
+    # occlusion contour (distance 0), their neighbours 1 away, unless the silhouette is nearer.
+    depth = np.where(mask, np.where(np.arange(32) < 16, 2.0, 3.0)[None, :], 0.0)
+    to_step = np.minimum(np.abs(np.arange(32) - 15), np.abs(np.arange(32) - 16))[None, :]
+    np.testing.assert_array_equal(contour_distance(mask, depth), np.where(mask, np.minimum(ring, to_step), 0))
+    # The same square at one depth: no jump, only the silhouette.
+    np.testing.assert_array_equal(contour_distance(mask, np.where(mask, 2.0, 0.0)), ring)
+
+
+def test_normal_errors_by_contour_distance_pool_each_band_of_a_known_error_pattern():
+    # Error 30 deg on the two outer rings, 20 on rings 3-4, 10 on rings 5-8, 5 inside: each
+    # band's mean is its angle and its share the rings' pixel count over the square's.
+    mask, ring = square_rings(32, 20, 6)
+    angle = np.select([ring <= 2, ring <= 4, ring <= 8], [30.0, 20.0, 10.0], 5.0)
+    pred, gt = tilted_normals(np.where(mask, angle, 0.0)), tilted_normals(np.zeros((32, 32)))
+    m = torch.from_numpy(mask)[None]
+    # A second view: the same square, every pixel 5 deg, pooled pixel by pixel with the first.
+    second = tilted_normals(np.full((32, 32), 5.0))
+    bands = normal_errors_by_contour_distance([pred, second], [gt, gt], [m, m])
+    within = [400 - 16**2, 16**2 - 12**2, 12**2 - 4**2, 4**2]  # pixels of rings 1-2, 3-4, 5-8, 9-10
+    for band, expected, count in zip(bands, (30.0, 20.0, 10.0, 5.0), within):
+        assert band["mae_deg"] == pytest.approx((expected + 5.0) / 2, abs=1e-9)
+        assert band["share"] == pytest.approx(count / 400, abs=1e-12)
+    assert [(b["low"], b["high"]) for b in bands] == [(0.0, 2.0), (2.0, 4.0), (4.0, 8.0), (8.0, math.inf)]
+    # Agrees with the plain per-pixel errors: the share-weighted band means are the pooled mean.
+    pooled = torch.cat([normal_angle_errors(pred, gt, m), normal_angle_errors(second, gt, m)]).mean()
+    assert sum(b["mae_deg"] * b["share"] for b in bands) == pytest.approx(float(pooled), abs=1e-9)
+
+
+def test_normal_errors_by_contour_distance_errors():
+    n = tilted_normals(np.zeros((8, 8)))
+    m = torch.ones(1, 8, 8, dtype=torch.bool)
+    with pytest.raises(ValueError, match="matching"):
+        normal_errors_by_contour_distance([n], [n, n], [m])
+    with pytest.raises(ValueError, match="increasing"):
+        normal_errors_by_contour_distance([n], [n], [m], bands=(4.0, 2.0))
+    with pytest.raises(ValueError, match="nothing to evaluate"):
+        normal_errors_by_contour_distance([n], [n], [torch.zeros_like(m)])
+    # No pixel outside the mask and no depth jump: every pixel is beyond the last band.
+    bands = normal_errors_by_contour_distance([n], [n], [m])
+    assert bands[-1]["share"] == 1.0 and math.isnan(bands[0]["mae_deg"])
 
 
 @pytest.mark.slow

@@ -54,6 +54,10 @@ __all__ = [
     "visible_surface_figures",
     "normal_angle_errors",
     "normal_mae",
+    "CONTOUR_BANDS_PX",
+    "depth_jumps",
+    "contour_distance",
+    "normal_errors_by_contour_distance",
 ]
 
 # Defaults relative to the ground-truth bounding-box diagonal, so that they mean the same on
@@ -587,3 +591,99 @@ def normal_mae(
             raise ValueError(f"normal_mae: mask of view {i} is empty; nothing to evaluate")
         per_view.append(float(normal_angle_errors(p, g, m).mean()))
     return float(np.mean(per_view))
+
+
+# Upper ends (pixels) of the contour-distance bands of :func:`normal_errors_by_contour_distance`;
+# the last band is everything beyond the last value. Two pixels hold a splat's screen-space
+# dilation and the mask's anti-aliasing; eight reach past any tile of the reference rasterizer's
+# ray order.
+CONTOUR_BANDS_PX: tuple[float, ...] = (2.0, 4.0, 8.0)
+
+
+def depth_jumps(depth: np.ndarray, ratio: float = 0.05) -> np.ndarray:
+    """(H, W) bool: both pixels of every 4-neighbour pair whose depths differ by more than
+    ``ratio`` times the nearer one (an occlusion contour inside the object). 0 = no depth; a
+    pair with such a pixel is the silhouette's, not a jump.
+
+    >>> depth_jumps(np.array([[0.0, 2.0, 2.0, 3.0, 3.0]])).astype(int).tolist()
+    [[0, 0, 1, 1, 0]]
+    """
+    jump = np.zeros(depth.shape, bool)
+    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1], np.s_[1:])):
+        near = np.minimum(depth[a], depth[b])
+        rel = (near > 0) & (np.abs(depth[b] - depth[a]) > ratio * near)
+        jump[a] |= rel
+        jump[b] |= rel
+    return jump
+
+
+def contour_distance(mask: np.ndarray, depth: np.ndarray | None = None, jump_ratio: float = 0.05) -> np.ndarray:
+    """(H, W) float64 Euclidean distance in pixels from each pixel of ``mask`` to the object's
+    nearest contour: the nearest pixel outside the mask (the silhouette; an adjacent pixel is 1
+    away) or, with ``depth``, the nearest pixel of a :func:`depth_jumps` pair (0 on one). 0 outside
+    the mask. The image border is not a contour (an object cut by the frame has none there).
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    mask = np.asarray(mask, bool)
+    if not (~mask).any():
+        inside = np.full(mask.shape, np.inf)
+    else:
+        inside = distance_transform_edt(mask)
+    if depth is not None:
+        jump = depth_jumps(np.asarray(depth, np.float64), jump_ratio) & mask
+        if jump.any():
+            inside = np.minimum(inside, distance_transform_edt(~jump))
+    return np.where(mask, inside, 0.0)
+
+
+def normal_errors_by_contour_distance(
+    pred: Sequence[Tensor],
+    gt: Sequence[Tensor],
+    masks: Sequence[Tensor],
+    depths: Sequence[Tensor] | None = None,
+    bands: Sequence[float] = CONTOUR_BANDS_PX,
+) -> list[dict[str, float]]:
+    """Normal angular error by distance to the nearest contour, pooled over the views' pixels.
+
+    Where the error sits tells a renderer's or a model's trouble at silhouettes and occlusion
+    edges (splats seen edge-on, the screen-space dilation) from trouble on the open surface.
+
+    Args:
+        pred, gt, masks: as :func:`normal_mae` (V views of (3, H, W), (3, H, W), (1, H, W)).
+        depths: optional V ground-truth depth maps (1, H, W) whose jumps count as contours
+            (:func:`contour_distance`).
+        bands: increasing upper ends in pixels; band k holds the pixels at a distance in
+            (bands[k-1], bands[k]] (the first from 0), the last band those beyond ``bands[-1]``.
+
+    Returns:
+        one dict a band: ``low``, ``high`` (inf for the last), ``mae_deg`` (mean over its pixels;
+        nan where it has none) and ``share`` (its fraction of all evaluated pixels).
+
+    Raises:
+        ValueError: mismatched counts, no views, bands not increasing and positive, or no pixel
+            to evaluate.
+    """
+    if not (len(pred) == len(gt) == len(masks)) or len(pred) == 0 or (depths is not None and len(depths) != len(pred)):
+        raise ValueError("normal_errors_by_contour_distance needs matching non-empty lists of views")
+    edges = [0.0, *[float(b) for b in bands]]
+    if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
+        raise ValueError(f"bands must be positive and increasing, got {tuple(bands)}")
+    distances, errors = [], []
+    for i, (p, g, m) in enumerate(zip(pred, gt, masks)):
+        depth = None if depths is None else depths[i][0].detach().cpu().numpy()
+        distance = contour_distance(m[0].detach().cpu().numpy(), depth)
+        distances.append(distance[m[0].detach().cpu().numpy().astype(bool)])
+        errors.append(normal_angle_errors(p, g, m).cpu().numpy())
+    distance, error = np.concatenate(distances), np.concatenate(errors)
+    if error.size == 0:
+        raise ValueError("normal_errors_by_contour_distance: every mask is empty; nothing to evaluate")
+    out = []
+    for k, low in enumerate(edges):
+        high = edges[k + 1] if k + 1 < len(edges) else math.inf
+        sel = ((distance > low) | (k == 0)) & (distance <= high)
+        out.append({
+            "low": low, "high": high, "share": float(sel.mean()),
+            "mae_deg": float(error[sel].mean()) if sel.any() else math.nan,
+        })
+    return out
