@@ -27,6 +27,7 @@ import numpy as np
 import open3d as o3d
 import torch
 import torch.nn.functional as F
+from scipy.ndimage import distance_transform_edt
 from torch import Tensor
 
 from polargs_plugin.data.visibility import (
@@ -594,9 +595,8 @@ def normal_mae(
 
 
 # Upper ends (pixels) of the contour-distance bands of :func:`normal_errors_by_contour_distance`;
-# the last band is everything beyond the last value. Two pixels hold a splat's screen-space
-# dilation and the mask's anti-aliasing; eight reach past any tile of the reference rasterizer's
-# ray order.
+# the last band is everything beyond the last value. The first two pixels hold the screen-space
+# dilation's and the mask's blur; beyond eight a pixel lies on the open surface.
 CONTOUR_BANDS_PX: tuple[float, ...] = (2.0, 4.0, 8.0)
 
 
@@ -623,8 +623,6 @@ def contour_distance(mask: np.ndarray, depth: np.ndarray | None = None, jump_rat
     away) or, with ``depth``, the nearest pixel of a :func:`depth_jumps` pair (0 on one). 0 outside
     the mask. The image border is not a contour (an object cut by the frame has none there).
     """
-    from scipy.ndimage import distance_transform_edt
-
     mask = np.asarray(mask, bool)
     if not (~mask).any():
         inside = np.full(mask.shape, np.inf)
