@@ -27,6 +27,7 @@ import torch
 from polargs_plugin.backends.reference.rasterizer import check_order
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.metrics import CONTOUR_BANDS_PX, normal_errors_by_contour_distance, normal_mae
+from polargs_plugin.service.evaluation import normal_mask
 from polargs_plugin.service.runs import load_run
 
 
@@ -52,8 +53,7 @@ def band_figures(model, views) -> dict:
     pred, gt, masks, depths = [], [], [], []
     with torch.no_grad():
         for view in views:
-            valid = view.normal_gt.norm(dim=0, keepdim=True) > 0
-            mask = valid if view.mask is None else view.mask.bool() & valid
+            mask = normal_mask(view)
             if not bool(mask.any()):
                 continue
             pred.append(model.render(view).normal.cpu())

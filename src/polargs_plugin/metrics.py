@@ -670,8 +670,8 @@ def normal_errors_by_contour_distance(
     distances, errors = [], []
     for i, (p, g, m) in enumerate(zip(pred, gt, masks)):
         depth = None if depths is None else depths[i][0].detach().cpu().numpy()
-        distance = contour_distance(m[0].detach().cpu().numpy(), depth)
-        distances.append(distance[m[0].detach().cpu().numpy().astype(bool)])
+        inside = m[0].detach().cpu().numpy().astype(bool)
+        distances.append(contour_distance(inside, depth)[inside])
         errors.append(normal_angle_errors(p, g, m).cpu().numpy())
     distance, error = np.concatenate(distances), np.concatenate(errors)
     if error.size == 0:

@@ -14,7 +14,8 @@ from polargs_plugin.service.runs import MESH_NAME, METRICS_NAME, Run, load_run
 if TYPE_CHECKING:
     from polargs_plugin.types import View
 
-__all__ = ["GT_MESH_NAMES", "EvalSettings", "gt_meshes", "evaluate", "metrics_path", "write_metrics", "normal_errors"]
+__all__ = ["GT_MESH_NAMES", "EvalSettings", "gt_meshes", "evaluate", "metrics_path", "write_metrics", "normal_errors",
+           "normal_mask"]
 
 #: Mesh files looked up, in order, when the ground truth is a folder: the object-only evaluation
 #: mesh the bundled scenes ship, then the whole-scene mesh.
@@ -76,6 +77,13 @@ def gt_meshes(path: Path) -> tuple[Path, Path | None]:
     return found[0], occluder
 
 
+def normal_mask(view: View) -> Any:
+    """(1, H, W) bool: the pixels where a view's normals are evaluated (inside its mask, where
+    its ground-truth normal is set); the view must have ``normal_gt``."""
+    valid = view.normal_gt.norm(dim=0, keepdim=True) > 0
+    return valid if view.mask is None else view.mask.bool() & valid
+
+
 def normal_errors(model: Any, views: Sequence[View], progress: bool = False,
                   object_pixels: Sequence[Any] | None = None) -> dict[str, float]:
     """Per-view normal MAE (degrees) of the rendered normals inside the GT masks and, when given,
@@ -90,8 +98,7 @@ def normal_errors(model: Any, views: Sequence[View], progress: bool = False,
         for index, view in enumerate(tqdm(views, desc="normal MAE", unit="view", disable=not progress)):
             if view.normal_gt is None:
                 continue
-            valid = view.normal_gt.norm(dim=0, keepdim=True) > 0
-            mask = valid if view.mask is None else view.mask.bool() & valid
+            mask = normal_mask(view)
             if object_pixels is not None:
                 mask = mask & torch.from_numpy(object_pixels[index])[None]
             if not bool(mask.any()):

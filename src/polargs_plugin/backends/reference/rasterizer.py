@@ -179,7 +179,7 @@ def ray_ordered(bins: TileBins, proj: Projection) -> TileBins:
     cx = ((tile % bins.tiles_x) * bins.tile_size).to(dtype) + half
     cy = ((tile // bins.tiles_x) * bins.tile_size).to(dtype) + half
     g = bins.gauss_ids
-    key = pixel_depth(proj.ray_coeffs[g].detach(), proj.ray_offsets[g].detach(), proj.depth_bounds[g].detach(), cx, cy)
+    key = pixel_depth(proj.ray_coeffs[g], proj.ray_offsets[g], proj.depth_bounds[g], cx, cy)
     by_key = torch.argsort(key, stable=True)
     by_tile = by_key[torch.argsort(tile[by_key], stable=True)]
     return bins._replace(gauss_ids=g[by_tile].contiguous())
