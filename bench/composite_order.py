@@ -16,7 +16,11 @@ recessed into the surface puts the colours back, and photometric training finds 
 
 Usage (about 1.5 minutes a scene with the default offsets on 2 cores):
 python bench/composite_order.py [--scenes family:253,torus_knot] [--splats 40000]
-    [--offsets -1.5,-1,-0.5,0,0.5] [--threads 2]
+    [--offsets -1.5,-1,-0.5,0,0.5] [--eps2d 0.1] [--threads 2]
+
+``--splats`` sets the splats' size (each as wide as their spacing): fewer, larger splats are
+closer to a trained CPU-preset model's. ``--eps2d`` is the screen dilation of every render
+(default: the CPU preset's, which trained models use).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from kornia.geometry.conversions import rotation_matrix_to_quaternion
 from scipy.ndimage import distance_transform_edt
 
 from polargs_plugin.backends.reference.rasterizer import rasterize
+from polargs_plugin.backends.reference.trainer import CPU_EPS2D
 from polargs_plugin.data.family import generate_family_scene, parse_family
 from polargs_plugin.data.synthetic import SyntheticScene, generate_scene
 from polargs_plugin.densify.seeding import frames_from_normals
@@ -98,7 +103,7 @@ def tangent_quaternions(normals: np.ndarray) -> torch.Tensor:
     return rotation_matrix_to_quaternion(frames.contiguous())
 
 
-def errors(scene: SyntheticScene, count: int, offsets: list[float]) -> dict[str, dict[float, float]]:
+def errors(scene: SyntheticScene, count: int, offsets: list[float], eps2d: float) -> dict[str, dict[float, float]]:
     points, normals, spacing = splats_on_surface(scene, count)
     colours = true_colours(scene, points, normals)
     step = footprint(scene)
@@ -115,7 +120,7 @@ def errors(scene: SyntheticScene, count: int, offsets: list[float]) -> dict[str,
             for view, diffuse, keep in zip(scene.views, scene.diffuse_gt, scored):
                 render = rasterize(means, quats, scales, opacities, sh, view.K.float(), view.world_to_camera.float(),
                                    view.width, view.height, background=torch.zeros(3), order=order, tile_size=tile,
-                                   with_plane_depth=False)
+                                   eps2d=eps2d, with_plane_depth=False)
                 diffs.append((render.color.clamp(0, 1) - diffuse).abs().mean(0).numpy()[keep])
             out[order][k] = float(np.concatenate(diffs).mean())
     return out
@@ -126,22 +131,25 @@ def main() -> None:
     parser.add_argument("--scenes", default="family:253,torus_knot")
     parser.add_argument("--splats", type=int, default=40_000)
     parser.add_argument("--offsets", default="-1.5,-1,-0.5,0,0.5")
+    parser.add_argument("--eps2d", type=float, default=CPU_EPS2D, help="screen dilation, pixels^2 (default %(default)s)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
+    if args.splats < 1 or args.eps2d < 0:
+        parser.error(f"--splats must be >= 1 and --eps2d >= 0, got {args.splats} and {args.eps2d}")
     torch.set_num_threads(args.threads)
     offsets = [float(x) for x in args.offsets.split(",")]
-    print(f"# {load()}; {args.splats} splats; error = mean |render - true diffuse| away from edges")
+    print(f"# {load()}; {args.splats} splats, eps2d {args.eps2d:g}; error = mean |render - true diffuse| away from edges")
     print(f"{'scene':22s} {'order':7s} " + " ".join(f"{k:+8.1f}" for k in offsets) + "   best offset (footprints)")
     figures = {}
     for name in args.scenes.split(","):
-        result = errors(make_scene(name), args.splats, offsets)
+        result = errors(make_scene(name), args.splats, offsets, args.eps2d)
         figures[name] = {}
         for order, by_offset in result.items():
             best = min(by_offset, key=by_offset.get)
             print(f"{name:22s} {order:7s} " + " ".join(f"{by_offset[k]:8.5f}" for k in offsets) + f"   {best:+.1f}")
             figures[name][order] = {"errors": {str(k): round(v, 6) for k, v in by_offset.items()}, "best_offset": best}
     print(f"# {load()}")
-    print(json.dumps({"bench": "composite_order", "splats": args.splats, "scenes": figures}))
+    print(json.dumps({"bench": "composite_order", "splats": args.splats, "eps2d": args.eps2d, "scenes": figures}))
 
 
 if __name__ == "__main__":

@@ -1,15 +1,17 @@
 """Where do a trained model's normals go wrong? Normal error by distance to the contours.
 
 For each run folder (`polargs train`, or a cell of `polargs ablate`) the model's normals are
-rendered into every training view that has ground-truth normals and depth, and compared with the
-ground truth: the normal MAE as `polargs eval` computes it (per view, then over the views) and the
+rendered, in the compositing order and tile size it was trained with, into every training view
+that has ground-truth normals and depth, and compared with the ground truth: the normal MAE
+computed as `polargs eval` does (per view, then over the views) and the
 angular error pooled over the pixels in bands of distance to the nearest contour, a silhouette or
 an occlusion edge of the ground-truth depth (0-2, 2-4, 4-8 and beyond 8 px;
 `polargs_plugin.metrics.normal_errors_by_contour_distance`).
 
 `--render ORDER:TILE` adds a row per run rendered with another compositing order and tile size
-(the model is unchanged): `--render ray:1` composites a ray-ordered model exactly per pixel, which
-shows what its training tiles cost.
+(the model is unchanged): `--render ray:1` composites a ray-ordered model exactly per pixel, as
+`polargs mesh`, `polargs eval` and the ablation's pictures do, which shows what its training
+tiles cost.
 
 Usage (a few seconds a run on 2 cores at 128-160 px):
 python bench/normal_bands.py RUN [RUN ...] [--render ray:1] [--threads 2]

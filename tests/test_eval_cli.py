@@ -17,7 +17,7 @@ class NormalStandIn:
     def __init__(self, normals):
         self.normals = normals
 
-    def render(self, view):
+    def render_output(self, view):
         n = self.normals[view.name]
         return RenderOut(color=torch.zeros(3, *n.shape[1:]), depth=torch.ones(1, *n.shape[1:]), normal=n,
                          alpha=torch.ones(1, *n.shape[1:]))

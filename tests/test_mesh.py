@@ -173,7 +173,7 @@ def test_write_and_read_mesh_atomic(tmp_path):
 class AnalyticSphereModel:
     """Stands in for a trained model: renders the exact unit sphere (depth, normal, alpha)."""
 
-    def render(self, view: View) -> RenderOut:
+    def render_output(self, view: View) -> RenderOut:
         K, w2c = view.K.numpy(), view.world_to_camera.numpy()
         depth, hit = sphere_depth(K, w2c, RADIUS)
         u, v = np.meshgrid(np.arange(SIZE) + 0.5, np.arange(SIZE) + 0.5)
@@ -200,7 +200,7 @@ def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
     for i, (K, w2c, mask) in enumerate(zip(Ks, w2cs, masks)):
         view = View(name=f"v{i}", K=K, world_to_camera=w2c, stokes=torch.zeros(3, 3, SIZE, SIZE), mask=mask)
         # GT normals = rendered normals turned by exactly 0.3 rad towards a perpendicular m.
-        n = model.render(view).normal.double()
+        n = model.render_output(view).normal.double()
         m = torch.nn.functional.normalize(torch.cross(n, torch.tensor([1.0, 0, 0]).double().view(3, 1, 1).expand_as(n), dim=0), dim=0)
         view.normal_gt = (math.cos(0.3) * n + math.sin(0.3) * m).float()
         views.append(view)

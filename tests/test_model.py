@@ -239,6 +239,16 @@ def test_the_model_renders_and_saves_its_own_dilation():
         GaussianModel(params, sh_degree=0, eps2d=-1.0)
 
 
+def _overlapping_splats(n: int = 40, seed: int = 3) -> dict:
+    """Parameters of ``n`` opaque, randomly turned and sized Gaussians around the origin, many
+    overlapping, so that the compositing orders differ."""
+    gen = torch.Generator().manual_seed(seed)
+    return {
+        "means": torch.randn(n, 3, generator=gen) * 0.3, "sh_dc": torch.rand(n, 1, 3, generator=gen),
+        "sh_rest": torch.zeros(n, 0, 3), "opacity_logits": torch.full((n,), 2.0),
+        "log_scales": torch.log(torch.rand(n, 3, generator=gen) * 0.2 + 0.01), "quats": torch.randn(n, 4, generator=gen),
+    }
+
 def test_the_model_renders_and_saves_its_own_compositing_order():
     """order and tile_size belong to the model as eps2d does: every render uses them (a render
     with them passed explicitly is the same), a checkpoint keeps them, and an older checkpoint
@@ -246,13 +256,7 @@ def test_the_model_renders_and_saves_its_own_compositing_order():
     from polargs_plugin.backends.reference.rasterizer import rasterize
 
     view = _look_at_view([0.0, 0.0, 4.0], size=24, f=30.0, radius=0.5)
-    gen = torch.Generator().manual_seed(3)
-    n = 40
-    params = {
-        "means": torch.randn(n, 3, generator=gen) * 0.3, "sh_dc": torch.rand(n, 1, 3, generator=gen),
-        "sh_rest": torch.zeros(n, 0, 3), "opacity_logits": torch.full((n,), 2.0),
-        "log_scales": torch.log(torch.rand(n, 3, generator=gen) * 0.2 + 0.01), "quats": torch.randn(n, 4, generator=gen),
-    }
+    params = _overlapping_splats()
     model = GaussianModel(params, sh_degree=0, order="ray", tile_size=2)
     state = model.state()
     explicit = rasterize(state.means, state.quats, state.scales, state.opacities, model.sh, view.K, view.world_to_camera,
@@ -269,6 +273,24 @@ def test_the_model_renders_and_saves_its_own_compositing_order():
     with pytest.raises(ValueError, match="tile_size"):
         GaussianModel(params, sh_degree=0, tile_size=0)
 
+
+
+def test_outputs_of_a_ray_ordered_model_are_rendered_exactly_per_pixel():
+    """render_output (meshes, evaluation, pictures) composites a ray-ordered model with one-pixel
+    tiles, whatever tiles it trained with, and a centre-ordered one as render does."""
+    from polargs_plugin.backends.reference.rasterizer import rasterize
+
+    view = _look_at_view([0.0, 0.0, 4.0], size=24, f=30.0, radius=0.5)
+    params = _overlapping_splats()
+    model = GaussianModel(params, sh_degree=0, order="ray", tile_size=8)
+    state = model.state()
+    exact = rasterize(state.means, state.quats, state.scales, state.opacities, model.sh, view.K, view.world_to_camera,
+                      view.width, view.height, eps2d=model.eps2d, order="ray", tile_size=1)
+    assert torch.equal(model.render_output(view).color, exact.color)
+    assert not torch.equal(model.render(view).color, exact.color)  # the 8-px tiles' order differs somewhere
+    assert model.tile_size == 8  # training's tiles are left as they are
+    centre = GaussianModel(params, sh_degree=0, tile_size=8)
+    assert torch.equal(centre.render_output(view).color, centre.render(view).color)
 
 def _look_at_view(eye, size=48, f=60.0, name="v", radius=None) -> View:
     eye = torch.tensor(eye, dtype=torch.float64)

@@ -52,8 +52,9 @@ def _random_scene(n: int, width: int, height: int, seed: int, dtype=torch.float6
 def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, height, near=0.01, far=100.0,
                     order="center"):
     """Independent float64 renderer: every pixel walks every Gaussian, sorted by mean z
-    (``order="center"``) or, per pixel, by the depth of its ray's maximum density point
-    (``order="ray"``, ties in mean-z order)."""
+    (``order="center"``) or, per pixel (``order="ray"``, ties in mean-z order), by the depth of
+    its ray's maximum density point of the Gaussian thickened by the dilation, covariance
+    + EPS2D (z / f)^2 I with f the mean focal length."""
     means, quats, scales = (np.asarray(x, dtype=np.float64) for x in (means, quats, scales))
     opacities, colors = np.asarray(opacities, np.float64), np.asarray(colors, np.float64)
     K, w2c = np.asarray(K, np.float64), np.asarray(w2c, np.float64)
@@ -63,7 +64,7 @@ def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, heig
     rays = np.concatenate([pix, np.ones((pix.shape[0], 1))], -1) @ np.linalg.inv(K).T
     n_pix = pix.shape[0]
     # every Gaussian's alpha, depth, normal and plane distance at every pixel, in mean-z order
-    alphas, depths, normals, dists, cols = [], [], [], [], []
+    alphas, depths, keys, normals, dists, cols = [], [], [], [], [], []
     for i in np.argsort(means @ R.T[:, 2] + t[2]):
         mu = R @ means[i] + t
         if not near <= mu[2] <= far:
@@ -82,13 +83,18 @@ def dense_reference(means, quats, scales, opacities, colors, K, w2c, width, heig
         depth = (rays @ prec @ mu) / np.einsum("pi,ij,pj->p", rays, prec, rays)
         spread = CLAMP_SIGMAS * math.sqrt(cov[2, 2])
         depths.append(np.clip(depth, z - spread, z + spread))
+        thick = cov + EPS2D * (z / (0.5 * (fx + fy))) ** 2 * np.eye(3)
+        thick_prec = np.linalg.inv(thick)
+        key = (rays @ thick_prec @ mu) / np.einsum("pi,ij,pj->p", rays, thick_prec, rays)
+        keys.append(np.clip(key, z - CLAMP_SIGMAS * math.sqrt(thick[2, 2]), z + CLAMP_SIGMAS * math.sqrt(thick[2, 2])))
         evals, evecs = np.linalg.eigh(cov)
         normals.append(evecs[:, 0] * (-1.0 if evecs[:, 0] @ mu > 0 else 1.0))
         dists.append(-(normals[-1] @ mu))  # the splat's plane n . x = -d, d = -n . mu
         cols.append(colors[i])
     alphas, depths = np.array(alphas).reshape(-1, n_pix), np.array(depths).reshape(-1, n_pix)
     normals, dists, cols = np.array(normals).reshape(-1, 3), np.array(dists), np.array(cols).reshape(-1, 3)
-    ranks = np.argsort(depths, axis=0, kind="stable") if order == "ray" else np.arange(len(cols))[:, None].repeat(n_pix, 1)
+    keys = np.array(keys).reshape(-1, n_pix)
+    ranks = np.argsort(keys, axis=0, kind="stable") if order == "ray" else np.arange(len(cols))[:, None].repeat(n_pix, 1)
     trans = np.ones(n_pix)
     done = np.zeros(n_pix, bool)
     out = {k: np.zeros((n_pix, c)) for k, c in (("color", 3), ("dsum", 1), ("normal", 3), ("median", 1), ("dist", 1))}
@@ -283,3 +289,33 @@ def test_ray_order_shows_the_splat_each_ray_meets_first(backend: str) -> None:
     assert a_first[away].any() and (~a_first[away]).any()  # both planes are in front somewhere
     assert torch.equal(shown["ray"][away], a_first[away])
     assert bool(shown["center"].all())  # A's centre is nearer: A everywhere, wrong where B is in front
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_ray_order_sorts_an_edge_on_splat_the_ray_passes_by_at_its_centre_depth(backend: str) -> None:
+    """A face-on opaque red splat at z = 3 and, behind it (centre z = 3.3), a blue flat splat
+    seen edge-on, long along the view direction, whose plane x = 0.003 the rays of the middle
+    columns pass 0.01-0.02 beside (100-200 thicknesses): the blue splat's alpha there comes from
+    the screen dilation alone. Those rays cross its plane far in front (its depth clamps at
+    5 sigma_z before its centre, z = 1.8), where sorting it would draw it over the red one; the
+    splat thickened by the dilation (0.018 at z = 3.3) is densest along them near its centre,
+    behind the red splat, which must stay in front."""
+    width = height = 32
+    K = torch.tensor([[100.0, 0, 16], [0, 100.0, 16], [0, 0, 1]], dtype=torch.float64)
+    w2c = torch.eye(4, dtype=torch.float64)
+    means = torch.tensor([[0.0, 0.0, 3.0], [0.003, 0.0, 3.3]], dtype=torch.float64)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2, dtype=torch.float64)
+    scales = torch.tensor([[1.0, 1.0, 1e-4], [1e-4, 0.3, 0.3]], dtype=torch.float64)  # blue: normal along x
+    colors = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    opacities = torch.tensor([0.99, 0.99], dtype=torch.float64)
+    out = rasterize(means, quats, scales, opacities, colors, K, w2c, width, height, tile_size=1,
+                    backend=backend, order="ray", with_plane_depth=False)
+    alone = rasterize(means[1:], quats[1:], scales[1:], opacities[1:], colors[1:], K, w2c, width, height,
+                      tile_size=1, backend=backend, order="ray", with_plane_depth=False)
+    columns = slice(15, 17)  # pixel centres 15.5 and 16.5; the blue line projects to x = 16.09
+    rows = slice(12, 20)
+    assert bool((alone.alpha[0, rows, columns] > 0.4).all())  # the blue splat does cover these pixels
+    assert bool((alone.median_depth[0, rows, columns] < 2.0).all())  # at its clamped plane crossing
+    assert bool((out.color[0, rows, columns] > 0.98).all()) and bool((out.color[2, rows, columns] < 0.02).all())
+    torch.testing.assert_close(out.median_depth[0, rows, columns], torch.full((8, 2), 3.0, dtype=torch.float64), atol=1e-9, rtol=0)
+

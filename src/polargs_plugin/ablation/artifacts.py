@@ -68,7 +68,7 @@ def write_report_data(trainer, tmp: Path, gt_mesh: Path, occluder: Path | None, 
     with torch.no_grad():
         for i, (index, view) in enumerate(zip(indices, views)):
             data[f"{i}/gt_silhouette"] = silhouettes[i][None]
-            out = trainer.model.render(view, background=trainer.background, backend=trainer.config.backend)
+            out = trainer.model.render_output(view, background=trainer.background, backend=trainer.config.backend)
             depth = out.median_depth if out.median_depth is not None else out.depth
             fields = {
                 "color": out.color.clamp(0, 1), "normal": out.normal, "depth": depth, "alpha": out.alpha,

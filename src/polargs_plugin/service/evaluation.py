@@ -86,8 +86,10 @@ def normal_mask(view: View) -> Any:
 
 def normal_errors(model: Any, views: Sequence[View], progress: bool = False,
                   object_pixels: Sequence[Any] | None = None) -> dict[str, float]:
-    """Per-view normal MAE (degrees) of the rendered normals inside the GT masks and, when given,
-    ``object_pixels`` (one (H, W) bool array per view: where the GT object itself is seen)."""
+    """Per-view normal MAE (degrees) of the normals ``model.render_output`` renders
+    (:meth:`~polargs_plugin.backends.reference.model.GaussianModel.render_output`) inside the GT
+    masks and, when given, ``object_pixels`` (one (H, W) bool array per view: where the GT object
+    itself is seen)."""
     import torch
     from tqdm import tqdm
 
@@ -103,7 +105,7 @@ def normal_errors(model: Any, views: Sequence[View], progress: bool = False,
                 mask = mask & torch.from_numpy(object_pixels[index])[None]
             if not bool(mask.any()):
                 continue  # the object is out of this view
-            normal = model.render(view).normal.cpu()
+            normal = model.render_output(view).normal.cpu()
             per_view[view.name] = normal_mae([normal], [view.normal_gt.cpu()], [mask.cpu()])
     return per_view
 

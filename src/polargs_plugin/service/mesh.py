@@ -80,7 +80,8 @@ class MeshResult:
 
 def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSettings = MeshSettings(),
                progress: bool = False, source: str = "") -> MeshResult:
-    """Render ``views`` with ``model`` and fuse their depths into a mesh.
+    """Render ``views`` with ``model`` (:meth:`~polargs_plugin.backends.reference.model.GaussianModel.render_output`)
+    and fuse their depths into a mesh.
 
     Args:
         model: the trained Gaussians.
@@ -102,7 +103,7 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
     depths, colors, Ks, w2cs, masks, alphas = [], [], [], [], [], []
     with torch.no_grad():
         for view in tqdm(views, desc="rendering", unit="view", disable=not progress):
-            out = model.render(view)
+            out = model.render_output(view)
             depth = out.median_depth if settings.depth == "median" else out.depth
             if depth is None:
                 raise PolarInputError(source or "mesh", "the renderer returns no median depth; use --depth expected")

@@ -137,8 +137,9 @@ class GaussianModel(nn.Module):
             saved with it.
         order: the compositing order every render uses (``rasterize``'s ``order``), kept and
             saved with the model for the same reason. Default "center" (vanilla).
-        tile_size: the tile edge in pixels every render uses (with ``order="ray"`` it sets how
-            closely the order follows each pixel's ray); >= 1. Default 16 (vanilla).
+        tile_size: the tile edge in pixels of :meth:`render` (with ``order="ray"`` it sets how
+            closely the order follows each pixel's ray; :meth:`render_output` follows it exactly);
+            >= 1. Default 16 (vanilla).
     """
 
     def __init__(
@@ -281,6 +282,15 @@ class GaussianModel(nn.Module):
             background=background,
             **{"eps2d": self.eps2d, "order": self.order, "tile_size": self.tile_size, **kwargs},
         )
+
+    def render_output(self, view: View, background: Tensor | None = None, **kwargs) -> RenderOut:
+        """:meth:`render` for what a trained model is used for (meshes, evaluation, the report's
+        pictures): in ray order with one-pixel tiles, where the order is exact per pixel (training's
+        ``tile_size`` approximates it tile by tile, for speed); in centre order as :meth:`render`,
+        whose order does not depend on the tiles."""
+        if self.order == "ray":
+            kwargs = {"tile_size": 1, **kwargs}
+        return self.render(view, background, **kwargs)
 
     # ------------------------------------------------------------- learning rates
     def _base_lr(self, name: str) -> float:

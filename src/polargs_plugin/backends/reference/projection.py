@@ -12,6 +12,12 @@ t*(p) = r^T Sigma^-1 mu / (r^T Sigma^-1 r). For a flattened Gaussian this is the
 the ray with its plane (so a planar splat renders the plane's depth exactly); for a round one it
 is close to the mean's z. The value is clamped to z_mean +- DEPTH_CLAMP_SIGMAS * sigma_z so that
 rays grazing an edge-on splat cannot produce depths outside the Gaussian's own extent.
+
+Ray-order key. Ray-ordered compositing sorts by the same depth of the Gaussians thickened by the
+screen-space dilation (:func:`dilated_ray_depth_data`): an edge-on splat owes its alpha to the
+dilation alone, and its undilated maximum density along a ray that passes beside it is where the
+ray crosses its plane, anywhere within the clamp, which at a silhouette would put it in front of
+the surface it belongs to.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ __all__ = [
     "EXTENT_SLACK",
     "Projection",
     "project_gaussians",
+    "dilated_ray_depth_data",
 ]
 
 DEPTH_CLAMP_SIGMAS = 5.0
@@ -94,13 +101,7 @@ def project_gaussians(
         :class:`Projection`. Culled Gaussians have extents 0 and finite (meaningless) values.
     """
     K = K.to(means)
-    w2c = world_to_camera.to(means)
-    rot_w2c, t_w2c = w2c[:3, :3], w2c[:3, 3]
-    mean_c = means @ rot_w2c.T + t_w2c
-    z = mean_c[:, 2]
-    in_range = (z >= near) & (z <= far)
-    # Culled Gaussians get a harmless z so that no inf/NaN leaks into the gradients.
-    z_safe = torch.where(in_range, z, torch.ones_like(z))
+    rot_w2c, mean_c, z_safe, in_range = _camera_frame(means, world_to_camera, near, far)
     x, y = mean_c[:, 0], mean_c[:, 1]
 
     fx, skew, cx = K[0, 0], K[0, 1], K[0, 2]
@@ -117,6 +118,48 @@ def project_gaussians(
     normals = shortest_axis_normals(axes_c, scales, mean_c)
     ray_coeffs, ray_offsets, depth_bounds = _ray_depth_data(axes_c, scales, cov_c, mean_c, z_safe, in_range, K)
     return Projection(means2d, conics, z_safe, normals, ray_coeffs, ray_offsets, depth_bounds, extents)
+
+
+def _camera_frame(means: Tensor, world_to_camera: Tensor, near: float, far: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(world-to-camera rotation, camera-frame means, culling-safe mean z, in [near, far])."""
+    w2c = world_to_camera.to(means)
+    rot_w2c = w2c[:3, :3]
+    mean_c = means @ rot_w2c.T + w2c[:3, 3]
+    z = mean_c[:, 2]
+    in_range = (z >= near) & (z <= far)
+    # Culled Gaussians get a harmless z so that no inf/NaN leaks into the gradients.
+    z_safe = torch.where(in_range, z, torch.ones_like(z))
+    return rot_w2c, mean_c, z_safe, in_range
+
+
+@torch.no_grad()
+def dilated_ray_depth_data(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    K: Tensor,
+    world_to_camera: Tensor,
+    near: float = 0.01,
+    far: float = 100.0,
+    eps2d: float = DEFAULT_EPS2D,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The per-pixel depth data (ray_coeffs, ray_offsets, depth_bounds, as in :class:`Projection`)
+    of the Gaussians thickened by the screen-space dilation: each scale becomes
+    sqrt(s^2 + eps2d (z / f)^2), z the mean's camera depth and f the mean focal length, the 3D
+    counterpart of the ``eps2d`` pixels^2 added to the screen covariance. Ray-ordered compositing
+    sorts by its depth (no gradient: the order is discrete).
+
+    Flat splats facing the ray keep their plane's depth; one within a few degrees of edge-on gets
+    the depth where the ray passes nearest its centre instead of where the ray crosses its plane.
+    """
+    K = K.to(means)
+    rot_w2c, mean_c, z_safe, in_range = _camera_frame(means, world_to_camera, near, far)
+    focal = 0.5 * (K[0, 0] + K[1, 1])
+    thickness = torch.sqrt(torch.as_tensor(eps2d, dtype=means.dtype)) * z_safe / focal
+    thick_scales = torch.sqrt(scales**2 + thickness[:, None] ** 2)
+    axes_c = rot_w2c @ quat_to_rotmat(quats)
+    rs = axes_c * thick_scales[:, None, :]
+    return _ray_depth_data(axes_c, thick_scales, rs @ rs.transpose(-1, -2), mean_c, z_safe, in_range, K)
 
 
 def _screen_covariance(

@@ -20,7 +20,7 @@ from ...geometry import depth_from_plane, eval_sh, plane_distances
 from ...types import RenderOut
 from .binning import DEFAULT_TILE_SIZE, TileBins, bin_gaussians
 from .composite_torch import Composite, composite_torch, pixel_depth
-from .projection import DEFAULT_EPS2D, Projection, project_gaussians
+from .projection import DEFAULT_EPS2D, Projection, dilated_ray_depth_data, project_gaussians
 
 __all__ = ["rasterize", "resolve_backend", "CompositeOrder", "check_order"]
 
@@ -105,11 +105,14 @@ def rasterize(
             of each Gaussian's mean, one order for the whole image. "ray": by the camera z at
             which the ray through the tile's centre meets each Gaussian's maximum density (a
             flat splat's plane), so that of two overlapping splats the one the ray meets first
-            is composited first; exact per pixel with ``tile_size=1``, a few pixels' worth of
-            approximation at small tiles. On a curved surface covered by tangent splats,
-            "center" composites the splat nearer the camera on top of its neighbours, which
-            shows every colour displaced towards the far side of its splat; training then
-            recesses the surface to put the colours back (docs/evaluation.md "Depth bias").
+            is composited first; the Gaussian is first thickened by the dilation ``eps2d``
+            (:func:`~.projection.dilated_ray_depth_data`), so that a splat seen edge-on beside
+            the ray is sorted near its centre, not where the ray crosses its plane. Exact per
+            pixel with ``tile_size=1``, a few pixels' worth of approximation at small tiles. On
+            a curved surface covered by tangent splats, "center" composites the splat nearer
+            the camera on top of its neighbours, which shows every colour displaced towards the
+            far side of its splat; training then recesses the surface to put the colours back
+            (docs/evaluation.md "Depth bias").
 
     Returns:
         :class:`RenderOut`:
@@ -155,7 +158,9 @@ def rasterize(
 
     bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
     if order == "ray":
-        bins = ray_ordered(bins, proj)
+        keys = dilated_ray_depth_data(means.detach(), quats.detach(), scales.detach(), K, world_to_camera.detach(),
+                                      near, far, eps2d)
+        bins = ray_ordered(bins, keys)
     distances = plane_distances(proj.normals, means, world_to_camera) if with_plane_depth else None
     if path == "numba":
         from .composite_numba import composite_numba
@@ -167,19 +172,22 @@ def rasterize(
 
 
 @torch.no_grad()
-def ray_ordered(bins: TileBins, proj: Projection) -> TileBins:
+def ray_ordered(bins: TileBins, keys: tuple[Tensor, Tensor, Tensor]) -> TileBins:
     """``bins`` with each tile's list sorted front to back by the camera z at which the ray
-    through the tile's centre meets each Gaussian (:func:`~.composite_torch.pixel_depth`); ties
-    keep the lists' mean-depth order. Gradients do not depend on the order's choice (it is
-    discrete), so both compositing paths take the re-sorted lists as they are."""
+    through the tile's centre passes each Gaussian's maximum density
+    (:func:`~.composite_torch.pixel_depth` of ``keys`` = (ray_coeffs, ray_offsets, depth_bounds),
+    :func:`~.projection.dilated_ray_depth_data`); ties keep the lists' mean-depth order.
+    Gradients do not depend on the order's choice (it is discrete), so both compositing paths
+    take the re-sorted lists as they are."""
+    ray_coeffs, ray_offsets, depth_bounds = keys
     counts = bins.tile_offsets[1:] - bins.tile_offsets[:-1]
     tile = torch.repeat_interleave(torch.arange(counts.shape[0], device=counts.device), counts)
     half = bins.tile_size / 2
-    dtype = proj.means2d.dtype
+    dtype = ray_coeffs.dtype
     cx = ((tile % bins.tiles_x) * bins.tile_size).to(dtype) + half
     cy = ((tile // bins.tiles_x) * bins.tile_size).to(dtype) + half
     g = bins.gauss_ids
-    key = pixel_depth(proj.ray_coeffs[g], proj.ray_offsets[g], proj.depth_bounds[g], cx, cy)
+    key = pixel_depth(ray_coeffs[g], ray_offsets[g], depth_bounds[g], cx, cy)
     by_key = torch.argsort(key, stable=True)
     by_tile = by_key[torch.argsort(tile[by_key], stable=True)]
     return bins._replace(gauss_ids=g[by_tile].contiguous())

@@ -126,13 +126,15 @@ class TrainConfig(CheckedConfig):
             given to the model (:class:`GaussianModel` keeps it with its parameters); >= 0.
             Default and vanilla 0.3; :meth:`cpu` sets 0.1.
         order: the rasterizer's compositing order within a tile (``rasterize``), given to the
-            model like ``eps2d``: "center" (default and vanilla: by each Gaussian's mean depth)
-            or "ray" (by the depth at which the tile centre's ray meets it; with small tiles it
-            removes the rendering side of the inward bias but, in training, costs normal
-            accuracy: docs/evaluation.md "Depth bias").
-        tile_size: the rasterizer's tile edge in pixels, given to the model; >= 1. Default and
-            vanilla 16. With ``order="ray"`` smaller tiles follow each pixel's ray more closely
-            and cost more time (a CPU-preset training at 128 px: about 1.3x at 4 px).
+            model like ``eps2d``: "center" (default and vanilla, as the upstream trainers: by
+            each Gaussian's mean depth) or "ray" (by the depth at which the tile centre's ray
+            meets it; it shrinks the inward bias, docs/evaluation.md "Depth bias"). A
+            ray-ordered model's meshes, evaluation and pictures are rendered with one-pixel
+            tiles (``GaussianModel.render_output``).
+        tile_size: the rasterizer's tile edge in pixels during training, given to the model;
+            >= 1. Default and vanilla 16. With ``order="ray"`` smaller tiles follow each pixel's
+            ray more closely and cost more time (a CPU-preset training at 128 px: about 1.2x
+            at 4 px).
         lrs: the learning rates (:class:`LearningRates`, vanilla's).
         density: vanilla density control (:class:`DensityConfig`).
         device: torch device of the training, e.g. ``"cpu"`` or ``"cuda:0"``. Default ``"cpu"``.
