@@ -22,7 +22,13 @@ largest colour/depth difference of each path against it.
 
     .venv/bin/python bench/rasterizer.py                      # both configurations, 2 threads
     .venv/bin/python bench/rasterizer.py --configs 30000:400x300 --backends torch,numba
+    .venv/bin/python bench/rasterizer.py --configs 40000:1024x1024 --backends numba --orders center:16,ray:4,ray:1
     mkdir -p out/ref && git archive HEAD src | tar -x -C out/ref && .venv/bin/python bench/rasterizer.py --ref-src out/ref/src
+
+``--orders ORDER:TILE,...`` times every backend in each compositing order and tile size
+(``rasterize(order=, tile_size=)``; default vanilla's center:16); the "x first" column is each
+row's fwd+bwd time over its backend's first order, and the naive baseline stays in mean-depth
+order (its differences to a ray-ordered row are the order's, not errors).
 
 The last line printed is one JSON object with the figures of every configuration.
 """
@@ -45,7 +51,7 @@ from scipy.spatial.transform import Rotation
 
 from polargs_plugin.backends.reference.composite_torch import ALPHA_MAX, T_MIN
 from polargs_plugin.backends.reference.projection import ALPHA_MIN, project_gaussians
-from polargs_plugin.backends.reference.rasterizer import rasterize
+from polargs_plugin.backends.reference.rasterizer import check_order, rasterize
 from polargs_plugin.geometry import eval_sh
 
 BACKENDS = ("naive", "torch", "numba", "numba_tproj", "numba_ref")
@@ -181,7 +187,8 @@ def _projection_step(backend: str, scene: dict, params: tuple, width: int, heigh
 
 
 def worker(
-    backend: str, num: int, width: int, height: int, sh_degree: int, iters: int, threads: int, out_dir: str
+    backend: str, num: int, width: int, height: int, sh_degree: int, iters: int, threads: int, out_dir: str,
+    order: str = "center", tile_size: int = 16,
 ) -> dict:
     """Time one configuration in this process; wall and CPU seconds, best of ``iters``."""
     torch.set_num_threads(threads)
@@ -193,6 +200,7 @@ def worker(
 
     result: dict = {
         "backend": backend,
+        "order": f"{order}:{tile_size}",
         "package": os.path.dirname(polargs_plugin.__file__),
         "rss_before_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
@@ -212,7 +220,8 @@ def worker(
             backend, (backend, "auto")
         )
         weights = _loss_weights(width, height)
-        kwargs = {"backend": raster_backend} | ({} if projection is None else {"projection": projection})
+        kwargs = {"backend": raster_backend, "order": order, "tile_size": tile_size}
+        kwargs |= {} if projection is None else {"projection": projection}
 
         def run(with_backward: bool):
             out = rasterize(*(scene[k] for k in params), scene["K"], scene["world_to_camera"], width, height, **kwargs)
@@ -239,7 +248,7 @@ def worker(
         result.update(fwd_s=best_fwd[0], fwd_bwd_s=best_full[0], fwd_bwd_cpu_s=best_full[1], proj_s=best_proj[0])
         images = {"color": best_full[2].color.detach(), "depth": best_full[2].depth.detach()}
     result["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    torch.save(images, os.path.join(out_dir, f"{backend}.pt"))
+    torch.save(images, os.path.join(out_dir, f"{backend}_{order}_{tile_size}.pt"))
     return result
 
 
@@ -249,6 +258,22 @@ def _parse_config(text: str) -> tuple[int, int, int, int]:
     width, height = (int(v) for v in parts[1].lower().split("x"))
     sh = int(parts[2].lower().removeprefix("sh")) if len(parts) > 2 else -1
     return int(parts[0]), width, height, sh
+
+
+def _parse_orders(text: str) -> list[tuple[str, int]]:
+    """"center:16,ray:1" -> [("center", 16), ("ray", 1)]; a one-line error for anything else."""
+    orders = []
+    for item in text.split(","):
+        order, _, tile = item.partition(":")
+        try:
+            check_order(order, "--orders' order")
+            size = int(tile)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(f"--orders wants ORDER:TILE,... (e.g. center:16,ray:1), got {text!r}: {err}") from err
+        if size < 1:
+            raise argparse.ArgumentTypeError(f"--orders' tile sizes must be >= 1, got {text!r}")
+        orders.append((order, size))
+    return orders
 
 
 def _thread_env(threads: int) -> dict[str, str]:
@@ -271,12 +296,14 @@ def run_config(num: int, width: int, height: int, sh: int, args) -> dict | None:
         backends = args.backends.split(",")
         if args.ref_src and "numba_ref" not in backends:
             backends.append("numba_ref")
-        for backend in backends:
+        runs = [(b, o) for b in backends for o in (args.orders[:1] if b == "naive" else args.orders)]
+        for backend, (order, tile) in runs:
             if backend == "numba_ref" and not args.ref_src:
                 continue
             cmd = [sys.executable, __file__, "--worker", backend, "--gaussians", str(num),
                    "--width", str(width), "--height", str(height), "--sh-degree", str(sh),
-                   "--iters", str(args.iters), "--threads", str(args.threads), "--out-dir", out_dir]
+                   "--iters", str(args.iters), "--threads", str(args.threads), "--out-dir", out_dir,
+                   "--order", order, "--tile-size", str(tile)]
             env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "NUMBA_NUM_THREADS": str(args.threads)}
             env.update(_thread_env(args.threads))
             if backend == "numba_ref":
@@ -286,7 +313,8 @@ def run_config(num: int, width: int, height: int, sh: int, args) -> dict | None:
                 print(proc.stderr, file=sys.stderr)
                 return None
             row = json.loads(proc.stdout.strip().splitlines()[-1])
-            row["images"] = torch.load(os.path.join(out_dir, f"{backend}.pt"))
+            row["images"] = torch.load(os.path.join(out_dir, f"{backend}_{order}_{tile}.pt"))
+            row["name"] = backend if len(args.orders) == 1 else f"{backend} {order}:{tile}"
             rows.append(row)
 
     naive = next((r for r in rows if r["backend"] == "naive"), None)
@@ -294,8 +322,11 @@ def run_config(num: int, width: int, height: int, sh: int, args) -> dict | None:
     print(f"rasterizer bench: {num} Gaussians, {width}x{height}, {colours}, {args.threads} threads, "
           f"best of {args.iters} (naive: one run); cpu = process CPU seconds (less sensitive to other load); "
           f"proj = projection + SH fwd+bwd alone / fwd+bwd")
-    print(f"{'backend':12s} {'fwd s/it':>9s} {'fwd+bwd s/it':>13s} {'cpu s/it':>9s} {'proj':>6s} {'x naive':>8s} "
-          f"{'peak RSS MiB':>13s} {'max|dcolor|':>12s} {'max|ddepth|':>12s}")
+    print(f"{'backend':20s} {'fwd s/it':>9s} {'fwd+bwd s/it':>13s} {'cpu s/it':>9s} {'proj':>6s} {'x naive':>8s} "
+          f"{'x first':>8s} {'peak RSS MiB':>13s} {'max|dcolor|':>12s} {'max|ddepth|':>12s}")
+    first = {}
+    for r in rows:
+        first.setdefault(r["backend"], r)
     figures: dict = {"gaussians": num, "width": width, "height": height, "sh_degree": sh, "backends": {}}
     for r in rows:
         speedup = naive["fwd_bwd_s"] / r["fwd_bwd_s"] if naive else math.nan
@@ -304,16 +335,18 @@ def run_config(num: int, width: int, height: int, sh: int, args) -> dict | None:
             dc = (r["images"]["color"] - naive["images"]["color"]).abs().max().item()
             dd = (r["images"]["depth"] - naive["images"]["depth"]).abs().max().item()
         share = r["proj_s"] / r["fwd_bwd_s"]
-        print(f"{r['backend']:12s} {r['fwd_s']:9.4f} {r['fwd_bwd_s']:13.4f} {r['fwd_bwd_cpu_s']:9.4f} {share:6.1%} "
-              f"{speedup:8.1f} {r['peak_rss_mib']:13.0f} {dc:12.2e} {dd:12.2e}")
-        figures["backends"][r["backend"]] = {
+        over_first = r["fwd_bwd_s"] / first[r["backend"]]["fwd_bwd_s"]
+        print(f"{r['name']:20s} {r['fwd_s']:9.4f} {r['fwd_bwd_s']:13.4f} {r['fwd_bwd_cpu_s']:9.4f} {share:6.1%} "
+              f"{speedup:8.1f} {over_first:8.2f} {r['peak_rss_mib']:13.0f} {dc:12.2e} {dd:12.2e}")
+        figures["backends"][r["name"]] = {
+            "order": r["order"], "x_first_order": _num(over_first),
             "fwd_s": _num(r["fwd_s"]), "fwd_bwd_s": _num(r["fwd_bwd_s"]), "fwd_bwd_cpu_s": _num(r["fwd_bwd_cpu_s"]),
             "proj_s": _num(r["proj_s"]), "proj_share": _num(share), "x_naive": _num(speedup),
             "peak_rss_mib": round(r["peak_rss_mib"], 1), "max_dcolor": _num(dc), "max_ddepth": _num(dd),
             "package": r["package"],
         }
     fast = [r for r in rows if r["backend"] != "naive"]
-    by_name = {r["backend"]: r for r in rows}
+    by_name = first  # each backend's row in the first order
     for other in ("numba_tproj", "numba_ref"):
         if "numba" in by_name and other in by_name:
             figures[f"{other.removeprefix('numba_')}_over_numba"] = round(
@@ -321,12 +354,12 @@ def run_config(num: int, width: int, height: int, sh: int, args) -> dict | None:
             )
     if fast:
         best = min(fast, key=lambda r: r["fwd_bwd_s"])
-        figures["best"] = best["backend"]
+        figures["best"] = best["name"]
         ratio = f"{naive['fwd_bwd_s'] / best['fwd_bwd_s']:.1f}x naive" if naive else "naive not run"
         print(f"KEY: {num} Gaussians {width}x{height} {colours} {args.threads} threads: "
-              f"best={best['backend']} fwd+bwd={best['fwd_bwd_s']:.4f} s/iter ({ratio}), "
+              f"best={best['name']} fwd+bwd={best['fwd_bwd_s']:.4f} s/iter ({ratio}), "
               f"peak RSS {best['peak_rss_mib']:.0f} MiB; "
-              + ", ".join(f"{r['backend']}={r['fwd_bwd_s']:.4f}" for r in rows))
+              + ", ".join(f"{r['name']}={r['fwd_bwd_s']:.4f}" for r in rows))
     print()
     return figures
 
@@ -342,6 +375,10 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--backends", default=",".join(BACKENDS[:4]))
     parser.add_argument("--ref-src", help="another copy of the package's src/ to time as numba_ref")
+    parser.add_argument("--orders", default="center:16", type=_parse_orders,
+                        help="comma-separated ORDER:TILE compositing orders and tile sizes (default center:16)")
+    parser.add_argument("--order", default="center", help=argparse.SUPPRESS)
+    parser.add_argument("--tile-size", type=int, default=16, help=argparse.SUPPRESS)
     parser.add_argument("--worker", choices=BACKENDS, help=argparse.SUPPRESS)
     parser.add_argument("--gaussians", type=int, default=12000, help=argparse.SUPPRESS)
     parser.add_argument("--width", type=int, default=256, help=argparse.SUPPRESS)
@@ -351,7 +388,7 @@ def main() -> int:
     args = parser.parse_args()
     if args.worker:
         result = worker(args.worker, args.gaussians, args.width, args.height, args.sh_degree, args.iters,
-                        args.threads, args.out_dir)
+                        args.threads, args.out_dir, args.order, args.tile_size)
         print(json.dumps(result))
         return 0
 

@@ -160,7 +160,12 @@ def rasterize(
     if order == "ray":
         keys = dilated_ray_depth_data(means.detach(), quats.detach(), scales.detach(), K, world_to_camera.detach(),
                                       near, far, eps2d)
-        bins = ray_ordered(bins, keys)
+        if path == "numba":
+            from .composite_numba import ray_ordered_numba
+
+            bins = ray_ordered_numba(bins, keys)
+        else:
+            bins = ray_ordered(bins, keys)
     distances = plane_distances(proj.normals, means, world_to_camera) if with_plane_depth else None
     if path == "numba":
         from .composite_numba import composite_numba
