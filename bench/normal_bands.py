@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from polargs_plugin.backends.reference.rasterizer import check_order
+from polargs_plugin.backends.reference.rasterizer import parse_order_and_tile
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.metrics import CONTOUR_BANDS_PX, normal_errors_by_contour_distance, normal_mae
 from polargs_plugin.service.evaluation import normal_mask
@@ -39,15 +39,10 @@ def load() -> str:
 
 def parse_render(spec: str) -> tuple[str, int]:
     """'ORDER:TILE' -> (order, tile size); argparse error otherwise."""
-    order, _, tile = spec.partition(":")
     try:
-        check_order(order, "--render's order")
-        size = int(tile)
+        return parse_order_and_tile(spec, "--render")
     except ValueError as err:
-        raise argparse.ArgumentTypeError(f"--render wants ORDER:TILE (e.g. ray:1), got {spec!r}: {err}") from err
-    if size < 1:
-        raise argparse.ArgumentTypeError(f"--render's tile size must be >= 1, got {spec!r}")
-    return order, size
+        raise argparse.ArgumentTypeError(str(err)) from err
 
 
 def band_figures(model, views) -> dict:

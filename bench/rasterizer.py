@@ -51,7 +51,7 @@ from scipy.spatial.transform import Rotation
 
 from polargs_plugin.backends.reference.composite_torch import ALPHA_MAX, T_MIN
 from polargs_plugin.backends.reference.projection import ALPHA_MIN, project_gaussians
-from polargs_plugin.backends.reference.rasterizer import check_order, rasterize
+from polargs_plugin.backends.reference.rasterizer import parse_order_and_tile, rasterize
 from polargs_plugin.geometry import eval_sh
 
 BACKENDS = ("naive", "torch", "numba", "numba_tproj", "numba_ref")
@@ -261,19 +261,11 @@ def _parse_config(text: str) -> tuple[int, int, int, int]:
 
 
 def _parse_orders(text: str) -> list[tuple[str, int]]:
-    """"center:16,ray:1" -> [("center", 16), ("ray", 1)]; a one-line error for anything else."""
-    orders = []
-    for item in text.split(","):
-        order, _, tile = item.partition(":")
-        try:
-            check_order(order, "--orders' order")
-            size = int(tile)
-        except ValueError as err:
-            raise argparse.ArgumentTypeError(f"--orders wants ORDER:TILE,... (e.g. center:16,ray:1), got {text!r}: {err}") from err
-        if size < 1:
-            raise argparse.ArgumentTypeError(f"--orders' tile sizes must be >= 1, got {text!r}")
-        orders.append((order, size))
-    return orders
+    """"center:16,ray:1" -> [("center", 16), ("ray", 1)]; argparse error otherwise."""
+    try:
+        return [parse_order_and_tile(item, "--orders") for item in text.split(",")]
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from err
 
 
 def _thread_env(threads: int) -> dict[str, str]:

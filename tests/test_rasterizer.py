@@ -341,3 +341,13 @@ def test_ray_order_lists_are_the_same_from_the_compiled_sort(tile_size: int) -> 
     compiled = ray_ordered_numba(bins, keys).gauss_ids
     assert not torch.equal(reference, bins.gauss_ids)  # the ray order differs from the mean-depth order
     assert torch.equal(compiled, reference)
+
+
+def test_parse_order_and_tile_names_the_argument_in_its_errors() -> None:
+    from polargs_plugin.backends.reference.rasterizer import parse_order_and_tile
+
+    assert parse_order_and_tile("center:16", "--orders") == ("center", 16)
+    for spec, message in (("nearest:1", "the order in --render must be one of"), ("ray", "--render wants ORDER:TILE"),
+                          ("ray:x", "--render wants ORDER:TILE"), ("ray:0", "the tile size in --render must be >= 1")):
+        with pytest.raises(ValueError, match=message):
+            parse_order_and_tile(spec, "--render")

@@ -22,7 +22,7 @@ from .binning import DEFAULT_TILE_SIZE, TileBins, bin_gaussians
 from .composite_torch import Composite, composite_torch, pixel_depth
 from .projection import DEFAULT_EPS2D, Projection, dilated_ray_depth_data, project_gaussians
 
-__all__ = ["rasterize", "resolve_backend", "CompositeOrder", "check_order"]
+__all__ = ["rasterize", "resolve_backend", "CompositeOrder", "check_order", "parse_order_and_tile"]
 
 Backend = Literal["auto", "torch", "numba"]
 ProjectionPath = Literal["auto", "torch", "numba"]
@@ -196,6 +196,23 @@ def ray_ordered(bins: TileBins, keys: tuple[Tensor, Tensor, Tensor]) -> TileBins
     by_key = torch.argsort(key, stable=True)
     by_tile = by_key[torch.argsort(tile[by_key], stable=True)]
     return bins._replace(gauss_ids=g[by_tile].contiguous())
+
+
+def parse_order_and_tile(spec: str, where: str) -> tuple[str, int]:
+    """'ORDER:TILE' (e.g. "ray:1") -> (order, tile size); ValueError naming ``where`` otherwise.
+
+    >>> parse_order_and_tile("ray:4", "--render")
+    ('ray', 4)
+    """
+    order, _, tile = spec.partition(":")
+    try:
+        check_order(order, f"the order in {where}")
+        size = int(tile)
+    except ValueError as err:
+        raise ValueError(f"{where} wants ORDER:TILE (e.g. ray:1), got {spec!r}: {err}") from err
+    if size < 1:
+        raise ValueError(f"the tile size in {where} must be >= 1, got {spec!r}")
+    return order, size
 
 
 def check_order(order: str, where: str = "order") -> None:
