@@ -133,7 +133,7 @@ class TrainConfig(CheckedConfig):
             tiles (``GaussianModel.render_output``).
         tile_size: the rasterizer's tile edge in pixels during training, given to the model;
             >= 1. Default and vanilla 16. With ``order="ray"`` smaller tiles follow each pixel's
-            ray more closely and cost more time (a CPU-preset training at 128 px: about 1.2x
+            ray more closely and cost more time (a CPU-preset training at 128 px: about 1.5x
             at 4 px).
         lrs: the learning rates (:class:`LearningRates`, vanilla's).
         density: vanilla density control (:class:`DensityConfig`).
