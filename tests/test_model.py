@@ -239,6 +239,15 @@ def test_the_model_renders_and_saves_its_own_dilation():
         GaussianModel(params, sh_degree=0, eps2d=-1.0)
 
 
+def _rasterized(model: GaussianModel, view: View, **kwargs):
+    """``rasterize`` called directly on the model's Gaussians at its dilation (``kwargs``: the rest)."""
+    from polargs_plugin.backends.reference.rasterizer import rasterize
+
+    state = model.state()
+    return rasterize(state.means, state.quats, state.scales, state.opacities, model.sh, view.K, view.world_to_camera,
+                     view.width, view.height, eps2d=model.eps2d, **kwargs)
+
+
 def _overlapping_splats(n: int = 40, seed: int = 3) -> dict:
     """Parameters of ``n`` opaque, randomly turned and sized Gaussians around the origin, many
     overlapping, so that the compositing orders differ."""
@@ -249,18 +258,15 @@ def _overlapping_splats(n: int = 40, seed: int = 3) -> dict:
         "log_scales": torch.log(torch.rand(n, 3, generator=gen) * 0.2 + 0.01), "quats": torch.randn(n, 4, generator=gen),
     }
 
+
 def test_the_model_renders_and_saves_its_own_compositing_order():
     """order and tile_size belong to the model as eps2d does: every render uses them (a render
     with them passed explicitly is the same), a checkpoint keeps them, and an older checkpoint
     without them renders as vanilla did ("center", 16-px tiles)."""
-    from polargs_plugin.backends.reference.rasterizer import rasterize
-
     view = _look_at_view([0.0, 0.0, 4.0], size=24, f=30.0, radius=0.5)
     params = _overlapping_splats()
     model = GaussianModel(params, sh_degree=0, order="ray", tile_size=2)
-    state = model.state()
-    explicit = rasterize(state.means, state.quats, state.scales, state.opacities, model.sh, view.K, view.world_to_camera,
-                         view.width, view.height, eps2d=model.eps2d, order="ray", tile_size=2)
+    explicit = _rasterized(model, view, order="ray", tile_size=2)
     assert torch.equal(model.render(view).color, explicit.color)
     assert not torch.equal(GaussianModel(params, sh_degree=0).render(view).color, explicit.color)  # the order shows
     restored = GaussianModel.from_checkpoint(copy.deepcopy(model.checkpoint()))
@@ -274,23 +280,19 @@ def test_the_model_renders_and_saves_its_own_compositing_order():
         GaussianModel(params, sh_degree=0, tile_size=0)
 
 
-
 def test_outputs_of_a_ray_ordered_model_are_rendered_exactly_per_pixel():
     """render_output (meshes, evaluation, pictures) composites a ray-ordered model with one-pixel
     tiles, whatever tiles it trained with, and a centre-ordered one as render does."""
-    from polargs_plugin.backends.reference.rasterizer import rasterize
-
     view = _look_at_view([0.0, 0.0, 4.0], size=24, f=30.0, radius=0.5)
     params = _overlapping_splats()
     model = GaussianModel(params, sh_degree=0, order="ray", tile_size=8)
-    state = model.state()
-    exact = rasterize(state.means, state.quats, state.scales, state.opacities, model.sh, view.K, view.world_to_camera,
-                      view.width, view.height, eps2d=model.eps2d, order="ray", tile_size=1)
+    exact = _rasterized(model, view, order="ray", tile_size=1)
     assert torch.equal(model.render_output(view).color, exact.color)
     assert not torch.equal(model.render(view).color, exact.color)  # the 8-px tiles' order differs somewhere
     assert model.tile_size == 8  # training's tiles are left as they are
     centre = GaussianModel(params, sh_degree=0, tile_size=8)
     assert torch.equal(centre.render_output(view).color, centre.render(view).color)
+
 
 def _look_at_view(eye, size=48, f=60.0, name="v", radius=None) -> View:
     eye = torch.tensor(eye, dtype=torch.float64)
