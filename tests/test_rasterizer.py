@@ -351,3 +351,22 @@ def test_parse_order_and_tile_names_the_argument_in_its_errors() -> None:
                           ("ray:x", "--render wants ORDER:TILE"), ("ray:0", "the tile size in --render must be >= 1")):
         with pytest.raises(ValueError, match=message):
             parse_order_and_tile(spec, "--render")
+
+
+def test_ray_order_keys_in_chunks_give_the_same_lists(monkeypatch) -> None:
+    """The torch path computes the ray-order keys chunk by chunk; chunks of 7 pairs give the
+    lists of one chunk."""
+    import polargs_plugin.backends.reference.rasterizer as rasterizer_module
+    from polargs_plugin.backends.reference.binning import bin_gaussians
+    from polargs_plugin.backends.reference.projection import dilated_ray_depth_data, project_gaussians
+
+    (means, quats, scales, opacities, _), K, w2c = _random_scene(200, 40, 32, seed=6, dtype=torch.float32)
+    K, w2c = K.float(), w2c.float()
+    proj = project_gaussians(means, quats, scales, opacities, K, w2c, 40, 32)
+    bins = bin_gaussians(proj.means2d, proj.extents, proj.depths, 40, 32, 4)
+    keys = dilated_ray_depth_data(means, quats, scales, K, w2c)
+    whole = rasterizer_module.ray_ordered(bins, keys).gauss_ids
+    monkeypatch.setattr(rasterizer_module, "RAY_KEY_CHUNK", 7)
+    assert bins.gauss_ids.shape[0] > 7 * 10
+    assert torch.equal(rasterizer_module.ray_ordered(bins, keys).gauss_ids, whole)
+    assert not torch.equal(whole, bins.gauss_ids)

@@ -27,6 +27,7 @@ __all__ = ["rasterize", "resolve_backend", "CompositeOrder", "check_order", "par
 Backend = Literal["auto", "torch", "numba"]
 ProjectionPath = Literal["auto", "torch", "numba"]
 CompositeOrder = Literal["center", "ray"]
+RAY_KEY_CHUNK = 1 << 20  # (tile, Gaussian) pairs whose ray-order keys the torch path computes at once
 
 
 def resolve_backend(backend: Backend, device: torch.device) -> Literal["torch", "numba"]:
@@ -192,7 +193,12 @@ def ray_ordered(bins: TileBins, keys: tuple[Tensor, Tensor, Tensor]) -> TileBins
     cx = ((tile % bins.tiles_x) * bins.tile_size).to(dtype) + half
     cy = ((tile // bins.tiles_x) * bins.tile_size).to(dtype) + half
     g = bins.gauss_ids
-    key = pixel_depth(ray_coeffs[g], ray_offsets[g], depth_bounds[g], cx, cy)
+    # in chunks: the gathered (pairs, 3, 3) coefficients would be 36 bytes a pair at once
+    key = torch.empty_like(cx)
+    for first in range(0, g.shape[0], RAY_KEY_CHUNK):
+        part = slice(first, first + RAY_KEY_CHUNK)
+        ids = g[part]
+        key[part] = pixel_depth(ray_coeffs[ids], ray_offsets[ids], depth_bounds[ids], cx[part], cy[part])
     by_key = torch.argsort(key, stable=True)
     by_tile = by_key[torch.argsort(tile[by_key], stable=True)]
     return bins._replace(gauss_ids=g[by_tile].contiguous())
