@@ -321,19 +321,21 @@ def test_ray_order_sorts_an_edge_on_splat_the_ray_passes_by_at_its_centre_depth(
 
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("tile_size", [1, 4, 16])
-def test_ray_order_lists_are_the_same_from_the_compiled_sort(tile_size: int) -> None:
-    """The compiled per-tile sort gives each tile the same list as the torch sort (same float32
-    keys, both stable), on a scene of many overlapping Gaussians with ties in the keys (copies)."""
+def test_ray_order_lists_are_the_same_from_the_compiled_sort(tile_size: int, dtype: torch.dtype) -> None:
+    """The compiled per-tile sort gives each tile the same list as the torch sort (same keys in
+    the same dtype, both stable), on a scene of many overlapping Gaussians with ties in the keys
+    (copies)."""
     from polargs_plugin.backends.reference.binning import bin_gaussians
     from polargs_plugin.backends.reference.composite_numba import ray_ordered_numba
     from polargs_plugin.backends.reference.projection import dilated_ray_depth_data, project_gaussians
     from polargs_plugin.backends.reference.rasterizer import ray_ordered
 
     width, height = 40, 32
-    (means, quats, scales, opacities, _), K, w2c = _random_scene(300, width, height, seed=5, dtype=torch.float32)
+    (means, quats, scales, opacities, _), K, w2c = _random_scene(300, width, height, seed=5, dtype=dtype)
     means, quats, scales, opacities = (torch.cat([x, x[:20]]) for x in (means, quats, scales, opacities))
-    K, w2c = K.float(), w2c.float()
+    K, w2c = K.to(dtype), w2c.to(dtype)
     proj = project_gaussians(means, quats, scales, opacities, K, w2c, width, height)
     bins = bin_gaussians(proj.means2d, proj.extents, proj.depths, width, height, tile_size)
     keys = dilated_ray_depth_data(means, quats, scales, K, w2c)

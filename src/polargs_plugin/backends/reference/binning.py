@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["DEFAULT_TILE_SIZE", "TileBins", "bin_gaussians", "counted_tile_lists", "sorted_tile_lists"]
+__all__ = ["DEFAULT_TILE_SIZE", "TileBins", "bin_gaussians", "counted_tile_lists", "sorted_tile_lists", "tile_centres"]
 
 DEFAULT_TILE_SIZE = 16  # pixels, vanilla 3DGS's
 
@@ -78,6 +78,14 @@ def bin_gaussians(
     gauss_ids, tile_offsets = tile_lists(depth_order, lo_t, hi_t, visible, tiles_x, tiles_y)
     return TileBins(gauss_ids, tile_offsets, tiles_x, tiles_y, tile_size, visible)
 
+
+def tile_centres(bins: TileBins, dtype: torch.dtype) -> Tensor:
+    """(T, 2) pixel coordinates (x, y) of each tile's centre in ``dtype`` (pixel centres at
+    +0.5, so a one-pixel tile's is its pixel's): where ``order="ray"`` follows the rays."""
+    tile = torch.arange(bins.tile_offsets.shape[0] - 1, device=bins.tile_offsets.device)
+    half = bins.tile_size / 2
+    return torch.stack([((tile % bins.tiles_x) * bins.tile_size).to(dtype) + half,
+                        ((tile // bins.tiles_x) * bins.tile_size).to(dtype) + half], dim=-1)
 
 def sorted_tile_lists(
     depth_order: Tensor, lo_t: Tensor, hi_t: Tensor, visible: Tensor, tiles_x: int, tiles_y: int

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from polargs_plugin.threads import numba_scheduling
 
-from .binning import TileBins
+from .binning import TileBins, tile_centres
 from .composite_torch import ALPHA_MAX, T_MIN, Composite
 from .projection import ALPHA_MIN, Projection
 
@@ -529,28 +529,28 @@ def composite_numba(
 
 
 def ray_ordered_numba(bins: TileBins, keys: tuple[Tensor, Tensor, Tensor]) -> TileBins:
-    """:func:`~.rasterizer.ray_ordered` compiled, with the same float32 arithmetic and stable
-    sort (the same lists): each tile's list sorted in a copy, a tile per thread, with no
-    pair-sized temporaries (one-pixel tiles hold each Gaussian once per pixel it covers: tens of
-    millions of pairs in a megapixel image)."""
-    ray_coeffs, ray_offsets, depth_bounds = (k.detach().float() for k in keys)
+    """:func:`~.rasterizer.ray_ordered` compiled, with the same arithmetic in the keys' dtype and
+    the same stable sort (the same lists): each tile's list sorted in a copy, a tile per thread,
+    with no pair-sized temporaries (one-pixel tiles hold each Gaussian once per pixel it covers:
+    tens of millions of pairs in a megapixel image)."""
+    ray_coeffs, ray_offsets, depth_bounds = (k.detach() for k in keys)
     gauss_ids = bins.gauss_ids.clone()
-    _sort_tiles_by_ray_depth(gauss_ids.numpy(), bins.tile_offsets.numpy(), bins.tiles_x, bins.tile_size,
+    _sort_tiles_by_ray_depth(gauss_ids.numpy(), bins.tile_offsets.numpy(), tile_centres(bins, ray_coeffs.dtype).numpy(),
                              ray_coeffs.reshape(-1, 9).numpy(), ray_offsets.numpy(), depth_bounds.numpy())
     return bins._replace(gauss_ids=gauss_ids)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _sort_tiles_by_ray_depth(gauss_ids, tile_offsets, tiles_x, tile_size, ray_coeffs, ray_offsets, depth_bounds):
+def _sort_tiles_by_ray_depth(gauss_ids, tile_offsets, centres, ray_coeffs, ray_offsets, depth_bounds):
     """Sort each tile's slice of ``gauss_ids`` (stable) by the clamped depth of maximum density
-    on the ray through the tile's centre, in float32 as :func:`~.composite_torch.pixel_depth`."""
+    on the ray through the tile's centre, as :func:`~.composite_torch.pixel_depth` computes it
+    (in the dtype of ``centres`` and the ray data)."""
     for tile in numba.prange(tile_offsets.shape[0] - 1):
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         if end - start < 2:
             continue
-        px = np.float32((tile % tiles_x) * tile_size) + np.float32(0.5 * tile_size)
-        py = np.float32((tile // tiles_x) * tile_size) + np.float32(0.5 * tile_size)
-        keys = np.empty(end - start, np.float32)
+        px, py = centres[tile, 0], centres[tile, 1]
+        keys = np.empty(end - start, centres.dtype)
         for j in range(start, end):
             g = gauss_ids[j]
             q, b = ray_coeffs[g], ray_offsets[g]

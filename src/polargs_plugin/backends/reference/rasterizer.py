@@ -18,7 +18,7 @@ from torch import Tensor
 
 from ...geometry import depth_from_plane, eval_sh, plane_distances
 from ...types import RenderOut
-from .binning import DEFAULT_TILE_SIZE, TileBins, bin_gaussians
+from .binning import DEFAULT_TILE_SIZE, TileBins, bin_gaussians, tile_centres
 from .composite_torch import Composite, composite_torch, pixel_depth
 from .projection import DEFAULT_EPS2D, Projection, dilated_ray_depth_data, project_gaussians
 
@@ -188,10 +188,8 @@ def ray_ordered(bins: TileBins, keys: tuple[Tensor, Tensor, Tensor]) -> TileBins
     ray_coeffs, ray_offsets, depth_bounds = keys
     counts = bins.tile_offsets[1:] - bins.tile_offsets[:-1]
     tile = torch.repeat_interleave(torch.arange(counts.shape[0], device=counts.device), counts)
-    half = bins.tile_size / 2
-    dtype = ray_coeffs.dtype
-    cx = ((tile % bins.tiles_x) * bins.tile_size).to(dtype) + half
-    cy = ((tile // bins.tiles_x) * bins.tile_size).to(dtype) + half
+    centre = tile_centres(bins, ray_coeffs.dtype)[tile]
+    cx, cy = centre[:, 0], centre[:, 1]
     g = bins.gauss_ids
     # in chunks: the gathered (pairs, 3, 3) coefficients would be 36 bytes a pair at once
     key = torch.empty_like(cx)
