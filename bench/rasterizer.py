@@ -188,7 +188,7 @@ def _projection_step(backend: str, scene: dict, params: tuple, width: int, heigh
 
 def worker(
     backend: str, num: int, width: int, height: int, sh_degree: int, iters: int, threads: int, out_dir: str,
-    order: str = "center", tile_size: int = 16,
+    order: str, tile_size: int,
 ) -> dict:
     """Time one configuration in this process; wall and CPU seconds, best of ``iters``."""
     torch.set_num_threads(threads)
@@ -369,8 +369,8 @@ def main() -> int:
     parser.add_argument("--ref-src", help="another copy of the package's src/ to time as numba_ref")
     parser.add_argument("--orders", default="center:16", type=_parse_orders,
                         help="comma-separated ORDER:TILE compositing orders and tile sizes (default center:16)")
-    parser.add_argument("--order", default="center", help=argparse.SUPPRESS)
-    parser.add_argument("--tile-size", type=int, default=16, help=argparse.SUPPRESS)
+    parser.add_argument("--order", help=argparse.SUPPRESS)  # the worker's: main passes one of --orders
+    parser.add_argument("--tile-size", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--worker", choices=BACKENDS, help=argparse.SUPPRESS)
     parser.add_argument("--gaussians", type=int, default=12000, help=argparse.SUPPRESS)
     parser.add_argument("--width", type=int, default=256, help=argparse.SUPPRESS)
