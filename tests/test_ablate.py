@@ -19,9 +19,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+import open3d
 import pytest
+import torch
 
-from polargs_plugin.ablation.cell import Cell, CellFailed, run_cell
+from polargs_plugin.ablation import cell as cell_module
+from polargs_plugin.ablation.cell import Cell, CellFailed, run_cell, run_versions
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.ablation.gather import gather
 from polargs_plugin.ablation.grid import expand, run_grid
@@ -111,7 +114,6 @@ def test_a_cell_stopped_while_setting_up_leaves_its_log_and_no_temporary_folder(
     under load) still leaves the attempt's log where the next attempt or the user looks: an
     interruption appends to the partial log (after the earlier attempts' words), a failure writes
     the failure log; no .tmp folder is left either way."""
-    import polargs_plugin.ablation.cell as cell_module
 
     cell = expand([SceneSpec("s", str(tmp_path / "s"))], ["base"], [0], tmp_path / "out")[0]
     cell.partial_dir.mkdir(parents=True)
@@ -312,6 +314,12 @@ def test_uncapped_figures_reach_the_results(tmp_path):
     assert "| 0.037 ± – | 0.0262 ± – | -0.032 ± – |" in full_row
 
 
+def test_run_versions_name_a_library_that_is_not_installed_as_null(monkeypatch):
+    monkeypatch.setattr(cell_module, "RECORDED_DISTRIBUTIONS", ("numpy", "no-such-distribution-polargs"))
+    versions = run_versions()
+    assert versions == {"python": sys.version.split()[0], "numpy": np.__version__, "no-such-distribution-polargs": None}
+
+
 # ---------------------------------------------------------------------------------- training
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
@@ -327,6 +335,9 @@ def _check_run(folder: Path, variant: str) -> dict:
     assert summary["train_config"]["iterations"] == 60
     assert (summary["polar_config"] is None) == (variant == "base")
     assert "commit" in summary["git"] and summary["timings"]["total"] > 0
+    # the installed libraries the figures came from, as the modules themselves report them
+    assert (summary["versions"]["torch"], summary["versions"]["numpy"], summary["versions"]["open3d"]) == (
+        torch.__version__, np.__version__, open3d.__version__)
     assert summary["eval"]["normal_region"] == "object"  # the normals of the object the Chamfer measures
     figures = summary["figures"]
     for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians",
@@ -427,7 +438,6 @@ def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, 
     """--format / --pattern / --bit-depth / --no-pattern-check of `polargs ablate` become the cell's
     ``reader`` (plain data, JSON round trip), reach load_dataset, and are recorded in summary.json
     under "reader" as `polargs train` records them (what `polargs mesh` / `eval` re-read with)."""
-    import polargs_plugin.ablation.cell as cell_module
     import polargs_plugin.service.data as service_data
     from polargs_plugin.data.synthetic import generate_scene
 

@@ -42,6 +42,7 @@ import sys
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
+from importlib import metadata
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
@@ -52,7 +53,7 @@ from polargs_plugin.io import PolarInputError, json_safe, write_json
 from polargs_plugin.service.runs import CHECKPOINT_NAME, MESH_NAME, METRICS_NAME, SUMMARY_NAME
 
 __all__ = ["Cell", "CellFailed", "run_cell", "chamfer_figures", "VISIBILITY_CLASSES", "INITS", "RUN_FORMAT", "SUMMARY_NAME", "CURVES_NAME", "is_done",
-           "partial_dir", "mark_interrupted", "PARTIAL_DIR"]
+           "partial_dir", "mark_interrupted", "PARTIAL_DIR", "RECORDED_DISTRIBUTIONS", "run_versions"]
 
 RUN_FORMAT = "polargs-ablation-run-v1"
 CURVES_NAME = "curves.csv"
@@ -349,7 +350,7 @@ def _run(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     summary.update(
         git=_git(),
         host=platform.node(),
-        versions={"python": platform.python_version(), "torch": torch.__version__},
+        versions=run_versions(),
         started=started,
         finished=_now(),
         timings=clock.total(),
@@ -684,6 +685,27 @@ def _initial_points(cell: Cell, views, config):
     print(f"init: {note}; falling back to the visual hull", flush=True)
     info.update(init_used="hull", init_note=note + "; fell back to the visual hull", init_points=config.num_init_points)
     return None, info
+
+
+#: The distributions whose versions a run records: the package and the libraries its figures
+#: come from (training, PatchMatch, meshing, evaluation).
+RECORDED_DISTRIBUTIONS: tuple[str, ...] = (
+    "polargs_plugin", "torch", "numpy", "scipy", "numba", "kornia", "opencv-python-headless", "open3d",
+)
+
+
+def run_versions() -> dict[str, str | None]:
+    """Python's version and the installed version of each of :data:`RECORDED_DISTRIBUTIONS`
+    (null for one not installed as a distribution, e.g. the package run from a source tree on
+    ``PYTHONPATH``). The same code and seed can train to figures a seed's spread apart on two
+    machines whose libraries differ; these say whether they did."""
+    versions: dict[str, str | None] = {"python": platform.python_version()}
+    for name in RECORDED_DISTRIBUTIONS:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
 
 
 def _git() -> dict[str, Any]:
