@@ -320,6 +320,20 @@ def test_ray_order_sorts_an_edge_on_splat_the_ray_passes_by_at_its_centre_depth(
     torch.testing.assert_close(out.median_depth[0, rows, columns], torch.full((8, 2), 3.0, dtype=torch.float64), atol=1e-9, rtol=0)
 
 
+def _bins_and_ray_keys(n: int, seed: int, dtype: torch.dtype, tile_size: int, copies: int = 0):
+    """The mean-depth tile lists of a random 40x32 scene of ``n`` Gaussians (the first ``copies``
+    repeated, for ties in the keys) and their ray-order keys, in ``dtype``."""
+    from polargs_plugin.backends.reference.binning import bin_gaussians
+    from polargs_plugin.backends.reference.projection import dilated_ray_depth_data, project_gaussians
+
+    width, height = 40, 32
+    (means, quats, scales, opacities, _), K, w2c = _random_scene(n, width, height, seed=seed, dtype=dtype)
+    means, quats, scales, opacities = (torch.cat([x, x[:copies]]) for x in (means, quats, scales, opacities))
+    K, w2c = K.to(dtype), w2c.to(dtype)
+    proj = project_gaussians(means, quats, scales, opacities, K, w2c, width, height)
+    bins = bin_gaussians(proj.means2d, proj.extents, proj.depths, width, height, tile_size)
+    return bins, dilated_ray_depth_data(means, quats, scales, K, w2c)
+
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("tile_size", [1, 4, 16])
@@ -327,18 +341,10 @@ def test_ray_order_lists_are_the_same_from_the_compiled_sort(tile_size: int, dty
     """The compiled per-tile sort gives each tile the same list as the torch sort (same keys in
     the same dtype, both stable), on a scene of many overlapping Gaussians with ties in the keys
     (copies)."""
-    from polargs_plugin.backends.reference.binning import bin_gaussians
     from polargs_plugin.backends.reference.composite_numba import ray_ordered_numba
-    from polargs_plugin.backends.reference.projection import dilated_ray_depth_data, project_gaussians
     from polargs_plugin.backends.reference.rasterizer import ray_ordered
 
-    width, height = 40, 32
-    (means, quats, scales, opacities, _), K, w2c = _random_scene(300, width, height, seed=5, dtype=dtype)
-    means, quats, scales, opacities = (torch.cat([x, x[:20]]) for x in (means, quats, scales, opacities))
-    K, w2c = K.to(dtype), w2c.to(dtype)
-    proj = project_gaussians(means, quats, scales, opacities, K, w2c, width, height)
-    bins = bin_gaussians(proj.means2d, proj.extents, proj.depths, width, height, tile_size)
-    keys = dilated_ray_depth_data(means, quats, scales, K, w2c)
+    bins, keys = _bins_and_ray_keys(300, seed=5, dtype=dtype, tile_size=tile_size, copies=20)
     reference = ray_ordered(bins, keys).gauss_ids
     compiled = ray_ordered_numba(bins, keys).gauss_ids
     assert not torch.equal(reference, bins.gauss_ids)  # the ray order differs from the mean-depth order
@@ -359,14 +365,8 @@ def test_ray_order_keys_in_chunks_give_the_same_lists(monkeypatch) -> None:
     """The torch path computes the ray-order keys chunk by chunk; chunks of 7 pairs give the
     lists of one chunk."""
     import polargs_plugin.backends.reference.rasterizer as rasterizer_module
-    from polargs_plugin.backends.reference.binning import bin_gaussians
-    from polargs_plugin.backends.reference.projection import dilated_ray_depth_data, project_gaussians
 
-    (means, quats, scales, opacities, _), K, w2c = _random_scene(200, 40, 32, seed=6, dtype=torch.float32)
-    K, w2c = K.float(), w2c.float()
-    proj = project_gaussians(means, quats, scales, opacities, K, w2c, 40, 32)
-    bins = bin_gaussians(proj.means2d, proj.extents, proj.depths, 40, 32, 4)
-    keys = dilated_ray_depth_data(means, quats, scales, K, w2c)
+    bins, keys = _bins_and_ray_keys(200, seed=6, dtype=torch.float32, tile_size=4)
     whole = rasterizer_module.ray_ordered(bins, keys).gauss_ids
     monkeypatch.setattr(rasterizer_module, "RAY_KEY_CHUNK", 7)
     assert bins.gauss_ids.shape[0] > 7 * 10

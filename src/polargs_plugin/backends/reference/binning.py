@@ -87,6 +87,7 @@ def tile_centres(bins: TileBins, dtype: torch.dtype) -> Tensor:
     return torch.stack([((tile % bins.tiles_x) * bins.tile_size).to(dtype) + half,
                         ((tile // bins.tiles_x) * bins.tile_size).to(dtype) + half], dim=-1)
 
+
 def sorted_tile_lists(
     depth_order: Tensor, lo_t: Tensor, hi_t: Tensor, visible: Tensor, tiles_x: int, tiles_y: int
 ) -> tuple[Tensor, Tensor]:
