@@ -2,8 +2,10 @@
 
 Everything a trainer of your own does, in a few lines each: parameters in a dict with one Adam,
 a render function returning ``RenderOut``, the trainer's colour loss, and the four hook calls.
-The bundled rasterizer renders here; with your own, return its colour, depth, normal and alpha
-(``polargs_plugin.kit.aux_channels`` gives the extra channels for normal / alpha / depth).
+The loop in :func:`train` is README's, line for line, and touches only what ``polargs_plugin``
+itself exports. The bundled rasterizer renders here; with your own, return its colour, depth,
+normal and alpha (``polargs_plugin.kit.aux_channels`` gives the extra channels for normal /
+alpha / depth).
 
     python examples/custom_trainer.py --scene bumpy_mixed --iterations 300 --size 64
 """
@@ -14,11 +16,13 @@ import argparse
 
 import torch
 
-from polargs_plugin import PolarConfig, PolarHooks, RenderOut, View
+from polargs_plugin import PolarConfig, PolarHooks, RenderOut, View, append_rows, raw_from_new, state_from_raw
+
+# the stand-ins for a trainer's own parts: the bundled rasterizer, a scene, the initial points
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.data.synthetic import generate_scene
-from polargs_plugin.kit import append_rows, logit, raw_from_new, rgb_to_sh, state_from_raw
+from polargs_plugin.kit import logit, rgb_to_sh
 from polargs_plugin.losses import photometric_loss
 
 
@@ -44,7 +48,7 @@ def make_optimizer(params: dict[str, torch.nn.Parameter], extent: float) -> torc
     return torch.optim.Adam([{"params": [p], "lr": lrs[k], "name": k} for k, p in params.items()], eps=1e-15)
 
 
-def render(params: dict[str, torch.Tensor], view: View) -> RenderOut:
+def render_params(params: dict[str, torch.Tensor], view: View) -> RenderOut:
     state = state_from_raw(params)
     colors = torch.cat([params["sh_dc"], params["sh_rest"]], dim=1)
     return rasterize(state.means, state.quats, state.scales, state.opacities, colors,
@@ -55,29 +59,32 @@ def train(views: list[View], iterations: int, config: PolarConfig, num_points: i
     params = make_params(views, num_points)
     centres = torch.stack([v.camera_center for v in views]).float()
     optimizer = make_optimizer(params, float((centres - centres.mean(0)).norm(dim=1).max()))
+
+    def render_fn(view: View) -> RenderOut:
+        return render_params(params, view)  # reads the dict each call: appended rows take part at once
+
+    def colour_loss(color: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+        # the trainer's loss as the PC term assumes it: the same SSIM share, the target clamped
+        return photometric_loss(color.clamp(0, 1), image.clamp(0, 1), ssim_weight=config.losses.ssim_weight)
+
     hooks = PolarHooks(config)
-    hooks.preprocess(views)  # PC maps, once (cached on disk when config.cache_dir is set)
-    order = torch.Generator().manual_seed(0)
-    appended = 0
-    for iteration in range(1, iterations + 1):  # hooks count iterations from 1
-        view = views[int(torch.randint(len(views), (1,), generator=order))]
-        out = render(params, view)
-        target = view.image.clamp(0, 1)
-        loss = photometric_loss(out.color.clamp(0, 1), target, ssim_weight=config.losses.ssim_weight)
-        extra, logs = hooks.loss(iteration, view, out, state_from_raw(params))  # PC, L_n, L_dn, L_scale
-        (loss + extra).backward()
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        if hooks.densify_due(iteration):  # Dense's schedule: no state is built off it
+    hooks.preprocess(views)                           # once (maps cached on disk with config.cache_dir)
+    for it in range(1, iterations + 1):               # iterations are 1-based for the hooks
+        view = views[it % len(views)]
+        render = render_fn(view)                      # -> RenderOut(color, depth, normal, alpha, ...)
+        loss = colour_loss(render.color, view.image)  # your own loss terms
+        extra, logs = hooks.loss(it, view, render, state_from_raw(params))  # activated Gaussians
+        (loss + extra).backward(); optimizer.step(); optimizer.zero_grad()
+        if hooks.densify_due(it):                     # Dense's schedule
             with torch.no_grad():
-                new = hooks.densify(iteration, view, lambda v: render(params, v), state_from_raw(params), render=out)
-                if new is not None:  # Dense: append with zero Adam moments, the step kept
-                    append_rows(params, optimizer, raw_from_new(new, params["sh_rest"].shape[1], like=params["means"]))
-                    appended += len(new)
-        if iteration % 50 == 0 or iteration == iterations:
-            print(f"it {iteration:5d}  loss {loss.item():.4f}  +polar {extra.item():.4f}  "
-                  f"N {params['means'].shape[0]}  appended {appended}", flush=True)
-    return {"loss": loss.item(), "num_gaussians": params["means"].shape[0], "appended": appended}
+                new = hooks.densify(it, view, render_fn, state_from_raw(params), render=render)
+            if new is not None:                       # NewGaussians: raw rows, zero Adam moments
+                append_rows(params, optimizer, raw_from_new(new, params["sh_rest"].shape[1]))
+        if it % 50 == 0 or it == iterations:
+            print(f"it {it:5d}  loss {loss.item():.4f}  +polar {extra.item():.4f}  "
+                  f"N {params['means'].shape[0]}", flush=True)
+    return {"loss": loss.item(), "num_gaussians": params["means"].shape[0],
+            "appended": params["means"].shape[0] - num_points}
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:

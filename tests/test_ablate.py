@@ -24,7 +24,9 @@ import pytest
 import torch
 
 from polargs_plugin.ablation import cell as cell_module
-from polargs_plugin.ablation.cell import Cell, CellFailed, run_cell, run_versions
+from polargs_plugin.ablation import pipeline as pipeline_module
+from polargs_plugin.ablation.cell import Cell, CellFailed, run_cell
+from polargs_plugin.service import provenance as provenance_module
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.ablation.gather import gather
 from polargs_plugin.ablation.grid import expand, run_grid
@@ -32,6 +34,7 @@ from polargs_plugin.ablation.scenes import SceneSpec, parse_scene
 from polargs_plugin.ablation.variants import VARIANTS, variant_configs
 from polargs_plugin.cli import main
 from polargs_plugin.data.synthetic import GENERATOR_VERSION
+from provenance_check import check_provenance
 
 TINY = ["--views", "6", "--size", "32x32", "--factor", "0.002", "--eval-samples", "20000",
         "--train-set", "num_init_points=300", "--train-set", "density.max_gaussians=800", "--jobs", "1", "--quiet"]
@@ -56,7 +59,7 @@ def test_variant_switches():
         train, polar = variant_configs(variant, factor=0.002, seed=3, train_overrides={"density": {"max_gaussians": 10}})
         l = polar.losses
         assert (polar.correction.enabled, polar.densify.enabled, l.use_ref, l.use_normal, l.use_depth_normal, l.use_scale) == switches
-        assert train.density.max_gaussians == 10 and l.ssim_weight == train.ssim_weight
+        assert train.density.max_gaussians == 10
         assert polar.densify.patchmatch.seed == 3
     assert set(expected) | {"base"} == set(VARIANTS)
     with pytest.raises(PolarInputError, match="--polar-set: polar.losses: unknown setting 'nonsense'"):
@@ -223,7 +226,7 @@ def test_mesh_error_flags_the_vertices_the_evaluation_measures(tmp_path):
 
 def _fake_run(out: Path, variant: str, seed: int, figures: dict, chamfer: dict | None = None, scene: str = SCENE) -> None:
     """A run folder as run_cell writes it, summary.json (and metrics.json) only."""
-    from polargs_plugin.ablation.cell import RUN_FORMAT
+    from polargs_plugin.ablation.pipeline import RUN_FORMAT
 
     folder = out / f"{scene}__{variant}__hull__s{seed}"
     folder.mkdir(parents=True)
@@ -314,9 +317,9 @@ def test_uncapped_figures_reach_the_results(tmp_path):
     assert "| 0.037 ± – | 0.0262 ± – | -0.032 ± – |" in full_row
 
 
-def test_run_versions_name_a_library_that_is_not_installed_as_null(monkeypatch):
-    monkeypatch.setattr(cell_module, "RECORDED_DISTRIBUTIONS", ("numpy", "no-such-distribution-polargs"))
-    versions = run_versions()
+def test_library_versions_name_a_library_that_is_not_installed_as_null(monkeypatch):
+    monkeypatch.setattr(provenance_module, "RECORDED_DISTRIBUTIONS", ("numpy", "no-such-distribution-polargs"))
+    versions = provenance_module.library_versions()
     assert versions == {"python": sys.version.split()[0], "numpy": np.__version__, "no-such-distribution-polargs": None}
 
 
@@ -328,16 +331,15 @@ def demo_dir(tmp_path_factory):
     return out
 
 
-def _check_run(folder: Path, variant: str) -> dict:
+def _check_run(folder: Path, variant: str, command: str = "demo") -> dict:
     summary = json.loads((folder / "summary.json").read_text())
     assert summary["variant"] == variant and summary["seed"] == 0
     assert summary["init"] == summary["init_used"] == "hull"
     assert summary["train_config"]["iterations"] == 60
     assert (summary["polar_config"] is None) == (variant == "base")
-    assert "commit" in summary["git"] and summary["timings"]["total"] > 0
-    # the installed libraries the figures came from, as the modules themselves report them
-    assert (summary["versions"]["torch"], summary["versions"]["numpy"], summary["versions"]["open3d"]) == (
-        torch.__version__, np.__version__, open3d.__version__)
+    assert summary["timings"]["total"] > 0
+    check_provenance(summary["provenance"], threads=1)
+    assert summary["provenance"]["command"].startswith(f"polargs {command} ")  # the grid's, not the worker's
     assert summary["eval"]["normal_region"] == "object"  # the normals of the object the Chamfer measures
     figures = summary["figures"]
     for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians",
@@ -401,7 +403,7 @@ def test_ablate_resumes_and_reports_failures(demo_dir, capsys):
         assert str(log) in captured.err and "dataset not found" in log.read_text()
         assert not (demo_dir / log.stem).exists()
     assert base.stat().st_mtime_ns == before
-    _check_run(demo_dir / f"{SCENE}__reg__hull__s0", "reg")
+    _check_run(demo_dir / f"{SCENE}__reg__hull__s0", "reg", command="ablate")
 
     stamps = {p: p.stat().st_mtime_ns for p in demo_dir.glob("*/summary.json")}
     assert main(args) == 1
@@ -416,35 +418,32 @@ def test_ablate_resumes_and_reports_failures(demo_dir, capsys):
     assert "| full |" in capsys.readouterr().out
 
 
-def test_sfm_init_falls_back_to_the_hull_and_says_so(tmp_path):
+def test_sfm_init_falls_back_to_the_hull_and_says_so(tmp_path, synthetic_views):
     """6 views of 32x32 give SIFT almost nothing: the run records the fallback (no training here)."""
     pytest.importorskip("pycolmap")
-    from polargs_plugin.ablation.cell import MIN_SFM_POINTS, _initial_points
-    from polargs_plugin.ablation.init import sfm_points
-    from polargs_plugin.data.synthetic import generate_scene
+    from polargs_plugin.ablation.init import MIN_SFM_POINTS, initial_points, sfm_points
 
-    views = generate_scene(SCENE, num_views=6, width=32, height=32).views
+    views = synthetic_views(SCENE, num_views=6, width=32, height=32)
     points, colors = sfm_points(views)
     assert points.shape[1] == colors.shape[1] == 3 and len(points) < MIN_SFM_POINTS
     cell = Cell(scene=SceneSpec(SCENE, str(tmp_path)), variant="base", seed=0, out=str(tmp_path), init="sfm")
-    init_points, info = _initial_points(cell, views, cell.configs()[0])
+    init_points, info = initial_points(cell, views, cell.configs()[0])
     assert init_points is None and info["init"] == "sfm" and info["init_used"] == "hull"
     assert "fell back to the visual hull" in info["init_note"]
 
 
 # ------------------------------------------------------------------------ reader options
 @pytest.mark.slow
-def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, capsys):
+def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, capsys, synthetic_views):
     """--format / --pattern / --bit-depth / --no-pattern-check of `polargs ablate` become the cell's
     ``reader`` (plain data, JSON round trip), reach load_dataset, and are recorded in summary.json
     under "reader" as `polargs train` records them (what `polargs mesh` / `eval` re-read with)."""
     import polargs_plugin.service.data as service_data
-    from polargs_plugin.data.synthetic import generate_scene
 
     data = tmp_path / "data"
     data.mkdir()
     (data / "gt_mesh.ply").write_text("stands in for the GT mesh")
-    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    views = synthetic_views("bumpy_mixed", num_views=3, width=24, height=24)
     calls, summaries = [], []
 
     def fake_load(spec, options):
@@ -452,7 +451,7 @@ def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, 
         # what a polar folder's reader reports
         return service_data.Dataset(spec, views, options.fmt, options, pattern="mono")
 
-    summary_of = cell_module._summary
+    summary_of = pipeline_module._summary
 
     def record_summary(*args):
         summaries.append(summary_of(*args))
@@ -462,8 +461,8 @@ def test_reader_options_reach_the_loader_and_the_summary(tmp_path, monkeypatch, 
         raise RuntimeError("stopped before meshing")
 
     monkeypatch.setattr(service_data, "load_dataset", fake_load)
-    monkeypatch.setattr(cell_module, "_summary", record_summary)
-    monkeypatch.setattr(cell_module, "_mesh", stop_at_mesh)
+    monkeypatch.setattr(pipeline_module, "_summary", record_summary)
+    monkeypatch.setattr(pipeline_module, "_mesh", stop_at_mesh)
     out = tmp_path / "out"
     reader_flags = ["--format", "polar", "--pattern", "mono", "--bit-depth", "12", "--no-pattern-check"]
     status = main(["ablate", "--scenes", f"mine={data}", "--variants", "base", "--out", str(out), "--jobs", "1", "--quiet",

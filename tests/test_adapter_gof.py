@@ -11,10 +11,10 @@ from polargs_adapters.gof import GofAdapter, attach
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.config import LossConfig
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.service.adapters import ENV_DATA
 from polargs_plugin.service.data import Dataset
 from polargs_plugin.types import NewGaussians
+import scene_cache
 from adapter_config import rough_model_config
 from standins import gof
 
@@ -26,7 +26,7 @@ GOF_STATISTICS = ("xyz_gradient_accum", "xyz_gradient_accum_abs", "xyz_gradient_
 
 @pytest.fixture(scope="module")
 def scene():
-    return generate_scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
+    return scene_cache.scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
 
 
 class RecordingRender:
@@ -96,9 +96,9 @@ def _wall(view, opacity_logit=2.0):
     return model
 
 
-def test_render_out_of_a_flat_wall_is_in_the_project_conventions() -> None:
+def test_render_out_of_a_flat_wall_is_in_the_project_conventions(synthetic_views) -> None:
     """depth = plane z (GOF's median depth, where alpha > 0.5), normal (0, 0, -1) x alpha, alpha."""
-    view = generate_scene("bumpy_mixed", num_views=1, width=SIZE, height=SIZE).views[0]
+    view = synthetic_views("bumpy_mixed", num_views=1, width=SIZE, height=SIZE)[0]
     model = _wall(view)
     camera = gof.Camera(view)
     model.compute_3D_filter(cameras=[camera])

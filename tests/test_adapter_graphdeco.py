@@ -9,8 +9,8 @@ import torch
 from polargs_adapters.graphdeco import GraphdecoAdapter
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.kit import depth_from_inverse
+import scene_cache
 from adapter_config import rough_model_config
 from standins import inria
 
@@ -19,7 +19,7 @@ SIZE = 40
 
 @pytest.fixture(scope="module")
 def scene():
-    return generate_scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
+    return scene_cache.scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
 
 
 def _trainer(scene, version=2024, n=400):
@@ -38,8 +38,8 @@ def test_views_carry_the_cameras_geometry_and_the_datasets_stokes(scene) -> None
         assert torch.equal(got.stokes, view.stokes) and torch.equal(got.mask, view.mask)
 
 
-def test_half_resolution_trainer_gets_area_averaged_stokes(scene) -> None:
-    half = [v for v in generate_scene("bumpy_mixed", num_views=8, width=SIZE // 2, height=SIZE // 2).views]
+def test_half_resolution_trainer_gets_area_averaged_stokes(scene, synthetic_views) -> None:
+    half = [v for v in synthetic_views("bumpy_mixed", num_views=8, width=SIZE // 2, height=SIZE // 2)]
     cameras = [inria.Camera(v) for v in half]
     _, model = _trainer(scene)
     adapter = GraphdecoAdapter(inria.Scene(cameras), model, None, inria.render, scene.views, config=rough_model_config())
@@ -56,9 +56,9 @@ def test_missing_polarimetric_view_names_both_sides(scene) -> None:
         GraphdecoAdapter(trainer_scene, model, None, inria.render, scene.views, config=rough_model_config())
 
 
-def test_render_out_of_a_flat_wall_is_in_the_project_conventions() -> None:
+def test_render_out_of_a_flat_wall_is_in_the_project_conventions(synthetic_views) -> None:
     """Flat Gaussians at camera z = 2 facing a camera: depth 2, normal (0, 0, -1) x alpha."""
-    view = generate_scene("bumpy_mixed", num_views=1, width=SIZE, height=SIZE).views[0]
+    view = synthetic_views("bumpy_mixed", num_views=1, width=SIZE, height=SIZE)[0]
     w2c = view.world_to_camera.float()
     xs = torch.linspace(-0.8, 0.8, 9)
     grid = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)

@@ -126,9 +126,9 @@ def mcmc_on_cpu(monkeypatch):
 
 @pytest.fixture(scope="module")
 def scene():
-    from polargs_plugin.data.synthetic import generate_scene
+    import scene_cache
 
-    return generate_scene("glossy_plane_sphere", num_views=5, width=SIZE, height=SIZE)
+    return scene_cache.scene("glossy_plane_sphere", num_views=5, width=SIZE, height=SIZE)
 
 
 def _splats(views: list[View], n: int = 300, seed: int = 0):

@@ -13,8 +13,8 @@ from polargs_adapters.pgsr import PgsrAdapter, attach
 from polargs_plugin import PolarConfig
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.backends.reference.rasterizer import rasterize
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.ssim import ssim_map
+import scene_cache
 from adapter_config import rough_model_config
 from standins import pgsr
 
@@ -23,7 +23,7 @@ SIZE = 40
 
 @pytest.fixture(scope="module")
 def scene():
-    return generate_scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
+    return scene_cache.scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
 
 
 def _trainer(scene, n=400, max_all_points=6_000_000):
@@ -72,7 +72,7 @@ WALL_POINT = torch.tensor([0.0, 0.0, 2.0])
 
 def _tilted_wall():
     """Flat Gaussians tiling the plane n . x = n . p0 (camera frame) in front of one camera."""
-    view = generate_scene("bumpy_mixed", num_views=1, width=SIZE, height=SIZE).views[0]
+    view = scene_cache.views("bumpy_mixed", num_views=1, width=SIZE, height=SIZE)[0]
     w2c = view.world_to_camera.float()
     n = torch.nn.functional.normalize(WALL_NORMAL, dim=0)
     u = torch.nn.functional.normalize(torch.linalg.cross(n, torch.tensor([0.0, 1.0, 0.0])), dim=0)

@@ -12,10 +12,10 @@ import polargs_plugin.service.adapters as service_adapters
 from polargs_adapters.twodgs import TwoDGSAdapter, attach
 from polargs_plugin.backends.reference.model import init_points_from_masks
 from polargs_plugin.config import LossConfig
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.service.adapters import ENV_DATA
 from polargs_plugin.service.data import Dataset
 from polargs_plugin.types import NewGaussians
+import scene_cache
 from adapter_config import rough_model_config
 from standins import twodgs
 
@@ -25,7 +25,7 @@ STATISTICS = ("xyz_gradient_accum", "denom", "max_radii2D")
 
 @pytest.fixture(scope="module")
 def scene():
-    return generate_scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
+    return scene_cache.scene("bumpy_mixed", num_views=8, width=SIZE, height=SIZE)
 
 
 def _trainer(scene, n=400):
@@ -72,9 +72,9 @@ def _wall(view, rotation_angle: float = 0.0):
 
 
 @pytest.mark.parametrize("spin", [0.0, 0.7])
-def test_render_out_of_a_flat_wall_is_in_the_project_conventions(spin: float) -> None:
+def test_render_out_of_a_flat_wall_is_in_the_project_conventions(spin: float, synthetic_views) -> None:
     """depth = plane z, normal = (0, 0, -1) x alpha in the CAMERA frame (2DGS's is world), alpha."""
-    view = generate_scene("bumpy_mixed", num_views=1, width=SIZE, height=SIZE).views[0]
+    view = synthetic_views("bumpy_mixed", num_views=1, width=SIZE, height=SIZE)[0]
     model = _wall(view, spin)
     camera = twodgs.Camera(view)
     adapter = _adapter(twodgs.Scene([camera]), model, [view])

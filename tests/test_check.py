@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from polargs_plugin.data.checks import check_views, image_scale_ratio, orient_normal_map
-from polargs_plugin.data.synthetic import generate_scene
 
 
 def mirrored(views):
@@ -19,8 +18,8 @@ def mirrored(views):
 
 
 @pytest.mark.parametrize("name", ["glossy_plane_sphere", "shiny_torus", "bumpy_mixed"])
-def test_synthetic_scenes_are_consistent_and_mirroring_is_flagged(name):
-    views = generate_scene(name, num_views=8, width=64, height=64).views
+def test_synthetic_scenes_are_consistent_and_mirroring_is_flagged(name, synthetic_views):
+    views = synthetic_views(name, num_views=8, width=64, height=64)
     report = check_views(views)
     assert report.verdict == "consistent", report.to_dict()["overall"]
     assert abs(report.overall.offset_deg) < 5 and report.overall.strength > 0.4
@@ -28,8 +27,8 @@ def test_synthetic_scenes_are_consistent_and_mirroring_is_flagged(name):
     assert flipped.verdict == "mirrored" and any("mirrored" in m for m in flipped.messages)
 
 
-def test_rotated_reference_and_no_polarization():
-    views = generate_scene("bumpy_mixed", num_views=4, width=48, height=48).views
+def test_rotated_reference_and_no_polarization(synthetic_views):
+    views = synthetic_views("bumpy_mixed", num_views=4, width=48, height=48)
     # rotate the Stokes reference by 30 degrees: (s1, s2) turned by 60 degrees
     c, s = np.cos(np.radians(60)), np.sin(np.radians(60))
     rotated = [replace(v, stokes=torch.stack([v.stokes[0], c * v.stokes[1] - s * v.stokes[2], s * v.stokes[1] + c * v.stokes[2]]))
@@ -40,8 +39,8 @@ def test_rotated_reference_and_no_polarization():
     assert check_views(flat).verdict == "inconclusive"
 
 
-def test_image_scale_ratio_finds_a_factor_two():
-    view = generate_scene("bumpy_mixed", num_views=1, width=48, height=48).views[0]
+def test_image_scale_ratio_finds_a_factor_two(synthetic_views):
+    view = synthetic_views("bumpy_mixed", num_views=1, width=48, height=48)[0]
     image = view.image.clamp_min(0).numpy()
     srgb = np.where(image <= 0.0031308, 12.92 * image, 1.055 * image ** (1 / 2.4) - 0.055)
     picture = np.round(np.clip(srgb, 0, 1) * 255).astype(np.uint8).transpose(1, 2, 0)
@@ -51,8 +50,8 @@ def test_image_scale_ratio_finds_a_factor_two():
     assert half["ratio"] == pytest.approx(2.0, rel=0.03) and half["encoding"] == "srgb"
 
 
-def test_orient_normal_map_tells_the_frame():
-    view = generate_scene("shiny_torus", num_views=1, width=48, height=48).views[0]
+def test_orient_normal_map_tells_the_frame(synthetic_views):
+    view = synthetic_views("shiny_torus", num_views=1, width=48, height=48)[0]
     n, mask, w2c = view.normal_gt.numpy(), view.mask[0].numpy(), view.world_to_camera.numpy()
     gl = n * np.array([1.0, -1.0, -1.0])[:, None, None]
     world = np.einsum("ji,jhw->ihw", w2c[:3, :3], n)
@@ -62,10 +61,10 @@ def test_orient_normal_map_tells_the_frame():
         np.testing.assert_allclose(out[:, mask], n[:, mask], atol=1e-5)
 
 
-def test_neisf_warns_on_poses_outside_its_normalisation(tmp_path):
+def test_neisf_warns_on_poses_outside_its_normalisation(tmp_path, synthetic_views):
     from polargs_plugin.data.neisf import read_neisf, write_neisf
 
-    views = generate_scene("bumpy_mixed", num_views=2, width=32, height=32).views
+    views = synthetic_views("bumpy_mixed", num_views=2, width=32, height=32)
     far = []
     for v in views:
         w2c = v.world_to_camera.clone()
@@ -80,14 +79,14 @@ def test_neisf_warns_on_poses_outside_its_normalisation(tmp_path):
         read_neisf(tmp_path / "near")
 
 
-def test_check_command(tmp_path, capsys):
+def test_check_command(tmp_path, capsys, synthetic_views):
     from polargs_plugin.cli import check as check_cli
     from polargs_plugin.cli import main
     from polargs_plugin.data.nersp import write_nersp
 
     parser = argparse.ArgumentParser()
     check_cli.register(parser.add_subparsers())
-    views = generate_scene("shiny_torus", num_views=4, width=48, height=48).views
+    views = synthetic_views("shiny_torus", num_views=4, width=48, height=48)
     write_nersp(views, tmp_path / "ok")
     write_nersp(mirrored(views), tmp_path / "bad")
     args = parser.parse_args(["check", str(tmp_path / "ok"), "--json", str(tmp_path / "r.json")])

@@ -22,9 +22,9 @@ import pytest
 
 from polargs_plugin.cli import _COMMANDS, build_parser, main
 from polargs_plugin.data.polar_folder import write_polar_folder
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.io import atomic_path, atomic_write, current_umask
 from polargs_plugin.types import View
+import scene_cache
 from test_faults import (  # noqa: F401 - scene16 and tiny_scene are fixtures, used by name
     _CANNOT_WRITE, _disk_full_at, _rewrite_angles, _scene8_with_16bit_view, scene16, tiny_scene,
 )
@@ -40,7 +40,7 @@ def _one_error_line(err: str, start: str) -> None:
 def _mono_folder(tmp_path: Path) -> Path:
     """A polar folder whose raw/ holds the real IMX250MZR crops (64x64), with cameras."""
     crops = sorted(CROPS.glob("polarizer_*.png"))
-    scene = generate_scene("glossy_plane_sphere", num_views=len(crops), width=64, height=64)
+    scene = scene_cache.scene("glossy_plane_sphere", num_views=len(crops), width=64, height=64)
     views = [View(v.name, v.K, v.world_to_camera, v.stokes[:, :1]) for v in scene.views]
     folder = write_polar_folder(views, tmp_path / "mono", mode="raw", pattern="mono", bit_depth=8)
     for view, crop in zip(views, crops):
@@ -50,7 +50,7 @@ def _mono_folder(tmp_path: Path) -> Path:
 
 def _colour_folder(tmp_path: Path) -> Path:
     """A polar folder of synthetic IMX250MYR mosaics written by the project's own writer."""
-    scene = generate_scene("torus_knot", num_views=4, width=128, height=128)
+    scene = scene_cache.scene("torus_knot", num_views=4, width=128, height=128)
     return write_polar_folder(scene.views, tmp_path / "colour", mode="raw", pattern="rgb", bit_depth=8,
                               angle_images=scene.angle_images)
 
@@ -154,14 +154,14 @@ def test_errors_are_one_line_without_traceback_in_a_real_process(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_mesh_rereads_the_views_with_the_runs_reader_options(tmp_path, monkeypatch):
+def test_mesh_rereads_the_views_with_the_runs_reader_options(tmp_path, monkeypatch, synthetic_views):
     """`polargs mesh` on a run folder reads the dataset with summary.json's "reader" entry (as
     `polargs train` and `polargs ablate` record it), here pattern="mono"."""
     import polargs_plugin.service.runs as runs
     from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
     from polargs_plugin.service.data import Dataset
 
-    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    views = synthetic_views("bumpy_mixed", num_views=3, width=24, height=24)
     trainer = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=100, iterations=1))
     trainer.step()
     run_dir = tmp_path / "run"
@@ -238,7 +238,7 @@ def _untrained_folder(tmp: Path) -> Path:
 
 
 def _polar_folder8(tmp: Path) -> Path:
-    views = generate_scene("glossy_plane_sphere", num_views=3, width=24, height=24).views
+    views = scene_cache.views("glossy_plane_sphere", num_views=3, width=24, height=24)
     return write_polar_folder(views, tmp / "polar", mode="angles", bit_depth=8)
 
 

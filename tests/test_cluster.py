@@ -96,7 +96,7 @@ def debug_grid(tmp_path_factory):
     import io
 
     out = tmp_path_factory.mktemp("debug") / "grid"
-    real_run = cell_module._run
+    real_run = cell_module.run_pipeline
 
     def flaky(cell, tmp, report):
         if cell.name == BAD:
@@ -105,7 +105,7 @@ def debug_grid(tmp_path_factory):
 
     stdout, stderr = io.StringIO(), io.StringIO()
     with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        patch.setattr(cell_module, "_run", flaky)
+        patch.setattr(cell_module, "run_pipeline", flaky)
         status = main(_grid_args(out))
     return out, status, stdout.getvalue(), stderr.getvalue()
 
@@ -132,7 +132,7 @@ def test_debug_array_failure_resubmit_and_retry(debug_grid, monkeypatch, capsys)
     assert status.strip().endswith("4 cells: 3 done, 0 running, 1 failed, 0 missing")
 
     stamps = {p: p.stat().st_mtime_ns for p in out.glob("*/summary.json")}
-    monkeypatch.setattr(cell_module, "_run", None)  # nothing may run
+    monkeypatch.setattr(cell_module, "run_pipeline", None)  # nothing may run
     assert main(args) == 1  # nothing new: the failed cell waits for --retry-failed
     captured = capsys.readouterr()
     assert "nothing to submit: 3 done, 1 failed (--retry-failed resubmits the failed ones)" in captured.err
@@ -188,7 +188,7 @@ def test_preempted_local_job_resumes_to_the_same_figures(debug_grid, tmp_path, c
     assert result.ok and len(result.finished) == 1, job.stderr()
     summary = json.loads((cell.run_dir / "summary.json").read_text())
     assert summary["resumed_from"] and 0 < summary["resumed_from"][0] <= 60, summary["resumed_from"]
-    assert summary["job"]["scheduler"] == "submitit-local"
+    assert summary["provenance"]["job"]["scheduler"] == "submitit-local"
     assert {k: summary["figures"][k] for k in FIGURES} == {k: expected[k] for k in FIGURES}
     assert (cell.run_dir / "curves.csv").read_text() == (reference.run_dir / "curves.csv").read_text()
     run_log = (cell.run_dir / "run.log").read_text()

@@ -4,6 +4,7 @@ the placeholder graphdeco trainer (tests/data/trainers/, with inria_support/ as 
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 import sys
@@ -20,6 +21,7 @@ from polargs_plugin.dryrun.probe import state_problems
 from polargs_plugin.dryrun.standins import gof, graphdeco_2023, graphdeco_2024, plane, simple_knn, surfel
 from polargs_plugin.kit.patching import main as patch_main
 from polargs_plugin.service.dryrun import Check, DryRunRequest, describe, dry_run, verdict
+from provenance_check import check_provenance
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAINERS = Path(__file__).resolve().parent / "data" / "trainers"
@@ -293,11 +295,14 @@ def test_dry_run_of_the_placeholder_trainer(fixture: str, trainer: str, tmp_path
     checkout = _placeholder_checkout(tmp_path, fixture)
     before = sorted(p.name for p in checkout.rglob("*") if "__pycache__" not in p.parts)
     request = DryRunRequest(checkout=checkout, trainer=trainer, workdir=tmp_path / "work", iterations=48, interval=8,
-                            views=16, width=32, height=24)
+                            views=16, width=32, height=24, command=f"polargs dryrun {checkout} --trainer {trainer}")
     result = dry_run(request)
     assert result.ok, "\n".join(describe(result.checks)) + "\n" + result.logs["patched"].read_text()[-3000:]
     names = {c.name for c in result.checks}
     assert {"finished (patched)", "Dense appended and survived (patched)", "checkpoint (patched)"} <= names
+    summary = json.loads((tmp_path / "work" / "summary.json").read_text())
+    assert summary["ok"] is True and [c["name"] for c in summary["checks"]] == [c.name for c in result.checks]
+    check_provenance(summary["provenance"], command=request.command)
     after = sorted(p.name for p in checkout.rglob("*") if "__pycache__" not in p.parts)
     assert after == before  # nothing written into the checkout
 

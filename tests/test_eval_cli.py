@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from polargs_plugin.cli import main
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.types import RenderOut
 
 
@@ -23,21 +22,21 @@ class NormalStandIn:
                          alpha=torch.ones(1, *n.shape[1:]))
 
 
-def test_eval_normals_on_an_smvp3d_folder(tmp_path, monkeypatch, capsys):
+def test_eval_normals_on_an_smvp3d_folder(tmp_path, monkeypatch, capsys, synthetic_scene):
     """The SMVP3D/NeRSP reader loads camera-frame GT normals (`normal/`), so --normals works."""
     import polargs_plugin.service.evaluation as patched
     from polargs_plugin.service import Dataset, Run
     from polargs_plugin.data.nersp import write_nersp
     from polargs_plugin.data.registry import load_views
 
-    scene = generate_scene("bumpy_mixed", num_views=3, width=40, height=40)
+    scene = synthetic_scene("bumpy_mixed", num_views=3, width=40, height=40)
     write_nersp(scene.views, tmp_path / "smvp3d")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         views = load_views(tmp_path / "smvp3d")
     assert all(v.normal_gt is not None for v in views)
     model = NormalStandIn({v.name: s.normal_gt for v, s in zip(views, scene.views)})
-    monkeypatch.setattr(patched, "load_run", lambda run_dir: Run(run_dir, model, Dataset("fake", views, "fake"), {}))
+    monkeypatch.setattr(patched, "load_run", lambda run_dir, data=None: Run(run_dir, model, Dataset("fake", views, "fake"), {}))
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     assert main(["eval", str(run_dir), "--normals", "--quiet"]) == 0
@@ -67,13 +66,13 @@ def test_eval_and_mesh_errors_are_one_line(tmp_path, capsys):
         assert "Traceback" not in err[0]
 
 
-def test_eval_uses_object_only_gt_of_a_scene_folder(tmp_path, capsys):
+def test_eval_uses_object_only_gt_of_a_scene_folder(tmp_path, capsys, synthetic_scene):
     """`--gt SCENE` reads gt_mesh.ply (the sphere without floor); a mesh equal to it scores ~0."""
     import open3d as o3d
 
     from polargs_plugin.data.scene_format import read_gt_mesh, write_scene
 
-    scene = generate_scene("glossy_plane_sphere", num_views=2, width=24, height=24)
+    scene = synthetic_scene("glossy_plane_sphere", num_views=2, width=24, height=24)
     write_scene(scene, tmp_path / "scene")
     gt = read_gt_mesh(tmp_path / "scene")
     full = read_gt_mesh(tmp_path / "scene", object_only=False)
@@ -86,7 +85,7 @@ def test_eval_uses_object_only_gt_of_a_scene_folder(tmp_path, capsys):
     assert "signed distance" in capsys.readouterr().out
 
 
-def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch):
+def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch, synthetic_scene):
     """With surface masks, glossy_plane_sphere's masks and GT normal maps cover the floor too (as a
     capture's masks may cover the table an object stands on); with `--gt` (region object)
     the normal MAE is the sphere's, like Chamfer. The stand-in renders the GT normals except on floor
@@ -100,7 +99,7 @@ def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch):
     from polargs_plugin.data.registry import load_views
     from polargs_plugin.data.scene_format import read_gt_mesh, write_scene
 
-    write_scene(generate_scene("glossy_plane_sphere", num_views=3, width=48, height=48, mask="surface"), tmp_path / "scene")
+    write_scene(synthetic_scene("glossy_plane_sphere", num_views=3, width=48, height=48, mask="surface"), tmp_path / "scene")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         views = load_views(tmp_path / "scene")
@@ -119,7 +118,7 @@ def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch):
         normals[view.name] = torch.where(wrong, side / side.norm(dim=0, keepdim=True).clamp_min(1e-12), gt)
         expected.append(90.0 * float(wrong.sum()) / float((view.mask.bool() & (gt.norm(dim=0, keepdim=True) > 0)).sum()))
     assert min(expected) > 10.0  # the floor is a large share of every mask
-    monkeypatch.setattr(patched, "load_run", lambda run_dir: Run(run_dir, NormalStandIn(normals), Dataset("fake", views, "fake"), {}))
+    monkeypatch.setattr(patched, "load_run", lambda run_dir, data=None: Run(run_dir, NormalStandIn(normals), Dataset("fake", views, "fake"), {}))
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     import open3d as o3d
@@ -131,3 +130,39 @@ def test_eval_normals_measure_the_object_not_its_support(tmp_path, monkeypatch):
     assert main(["eval", str(run_dir), "--normals", "--gt", str(tmp_path / "scene"), "--num-samples", "5000", "--quiet"]) == 0
     obj = json.loads((run_dir / "metrics.json").read_text())
     assert obj["normal_region"] == "object" and obj["normal_mae_deg"] == pytest.approx(0.0, abs=0.05)
+
+
+def test_every_figure_eval_prints_is_named_in_its_help_and_in_the_evaluation_guide(tmp_path, capsys, synthetic_scene):
+    """Each printed row, and each key of metrics.json's figures, appears in `polargs eval --help` and
+    docs/evaluation.md (a mesh file with the scene's views: object region and the visible-surface
+    figures; the normal MAE row from a run is added to the same metrics)."""
+    import re
+    from pathlib import Path
+
+    import open3d as o3d
+
+    from polargs_plugin.cli.eval import format_table
+    from polargs_plugin.data.scene_format import read_gt_mesh, write_scene
+
+    write_scene(synthetic_scene("glossy_plane_sphere", num_views=3, width=24, height=24), tmp_path / "scene")
+    o3d.io.write_triangle_mesh(str(tmp_path / "pred.ply"), read_gt_mesh(tmp_path / "scene"))
+    assert main(["eval", str(tmp_path / "pred.ply"), "--gt", str(tmp_path / "scene"), "--views", str(tmp_path / "scene"),
+                 "--num-samples", "5000", "--quiet"]) == 0
+    capsys.readouterr()
+    metrics = json.loads((tmp_path / "pred.metrics.json").read_text())
+    assert "chamfer_visible" in metrics["chamfer"] and metrics["chamfer"]["region"] == "object"
+    metrics.update(normal_mae_deg=1.0, normal_mae_per_view={"view_000": 1.0}, normal_region="object")
+    rows = [re.split(r"\s{2,}", line)[0] for line in format_table(metrics).splitlines()]
+    rows = [re.sub(r"@ [\d.e-]+$", "@ T", row) for row in rows]
+    assert len(rows) == 11 and "normal MAE" in rows and "completeness by view" in rows
+    bookkeeping = {"units", "culled", "seed", "visibility_classes"}  # settings and provenance, not figures
+    keys = set(metrics["chamfer"]) - bookkeeping | {"normal_mae_deg", "normal_mae_per_view", "normal_region"}
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    help_text = capsys.readouterr().out
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "evaluation.md").read_text()
+    for text, where in ((help_text, "polargs eval --help"), (guide, "docs/evaluation.md")):
+        assert [row for row in rows if row not in text] == [], where
+        assert sorted(key for key in keys if not re.search(rf"\b{key}\b", text)) == [], where
+    for name in ("many", "few", "grazing"):
+        assert name in metrics["chamfer"]["completeness_by_visibility"] and re.search(rf"\({name}\)", help_text)

@@ -174,6 +174,31 @@ def test_generated_family_scene_carries_its_draw_and_visibility():
         assert torch.equal(a, b)
 
 
+def test_the_whole_scene_generators_take_their_view_generators_arguments():
+    """Each argument is declared once, on the view-at-a-time generator: the whole-scene twin shows
+    and accepts the same ones (floor_texture and the family's forwarded options included) and
+    yields the same views."""
+    import inspect
+
+    from polargs_plugin.data.family import generate_family_scene_views
+    from polargs_plugin.data.synthetic import generate_scene, generate_scene_views
+
+    for whole, parts in ((generate_scene, generate_scene_views), (generate_family_scene, generate_family_scene_views)):
+        assert inspect.signature(whole).parameters == inspect.signature(parts).parameters
+    floor = generate_scene("glossy_plane_sphere", num_views=1, width=24, height=24, floor_texture="speckle")
+    plain = generate_scene("glossy_plane_sphere", num_views=1, width=24, height=24)
+    assert not torch.equal(floor.angle_images[0], plain.angle_images[0])
+    assert torch.equal(floor.views[0].depth_gt, plain.views[0].depth_gt)
+    options = dict(num_views=2, size=(24, 20), quantize_bits=16, mask="surface", shadows=False)
+    whole = generate_family_scene(3, **options)
+    parts = list(generate_family_scene_views(3, **options))
+    assert whole.meta["quantize_bits"] == 16 and whole.meta["mask"] == "surface" and "no shadows" in whole.meta["shading"]
+    for view, part in zip(whole.views, parts, strict=True):
+        assert torch.equal(view.stokes, part.views[0].stokes)
+    with pytest.raises(TypeError, match="width"):
+        generate_family_scene(3, width=24)  # the family's size is ``size``, not width/height
+
+
 def test_the_ablation_spells_a_family_scene_family_colon_seed(tmp_path):
     from polargs_plugin.ablation.scenes import parse_scene
     from polargs_plugin.data.synthetic import GENERATOR_VERSION

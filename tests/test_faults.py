@@ -39,7 +39,7 @@ def test_cache_entry_with_nan_values_is_recomputed(tmp_path):
     data = torch.load(path, weights_only=True)
     data["dolp"] = torch.full_like(data["dolp"], float("nan"))  # valid structure, NaN values
     torch.save(data, path)
-    with pytest.warns(UserWarning, match=r"cache entry of view 'v0' not used \(dolp holds non-finite") as caught:
+    with pytest.warns(UserWarning, match=r"cache entry of view 'v0' rebuilt: dolp holds non-finite") as caught:
         (again,) = PolarHooks(cfg).preprocess([view])
     assert str(path) in str(caught[0].message)
     assert _finite(again) and torch.equal(again.dolp, first.dolp)
@@ -187,11 +187,10 @@ def test_densify_checks_the_render_and_render_fn_shapes():
         hooks.densify(it, views[0], wrong_sources, None)
 
 
-def test_training_stops_at_the_first_non_finite_parameter_naming_iteration_and_tensor() -> None:
+def test_training_stops_at_the_first_non_finite_parameter_naming_iteration_and_tensor(synthetic_views) -> None:
     from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer, TrainingDiverged
-    from polargs_plugin.data.synthetic import generate_scene
 
-    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    views = synthetic_views("bumpy_mixed", num_views=3, width=24, height=24)
     trainer = Trainer(views, TrainConfig.cpu(progress=False, num_init_points=200))
     trainer.step()
     with torch.no_grad():
@@ -200,11 +199,10 @@ def test_training_stops_at_the_first_non_finite_parameter_naming_iteration_and_t
         trainer.step()
 
 
-def test_trainer_refuses_nan_views_and_nan_checkpoints(tmp_path) -> None:
+def test_trainer_refuses_nan_views_and_nan_checkpoints(tmp_path, synthetic_views) -> None:
     from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
-    from polargs_plugin.data.synthetic import generate_scene
 
-    views = generate_scene("bumpy_mixed", num_views=3, width=24, height=24).views
+    views = synthetic_views("bumpy_mixed", num_views=3, width=24, height=24)
     bad = views[1].stokes.clone()
     bad[0, 0, 5, 5] = float("nan")
     with pytest.raises(ValueError, match=r"Trainer: view 'view_001' .*stokes has 1 non-finite value\(s\)"):
@@ -219,12 +217,11 @@ def test_trainer_refuses_nan_views_and_nan_checkpoints(tmp_path) -> None:
         fresh.load_checkpoint(tmp_path / "nan.pt")
 
 
-def test_load_views_refuses_a_nan_pixel_naming_the_file(tmp_path, monkeypatch) -> None:
+def test_load_views_refuses_a_nan_pixel_naming_the_file(tmp_path, monkeypatch, synthetic_views) -> None:
     """A reader's NaN (e.g. an EXR Stokes pixel) is caught at the door, not in training."""
     from polargs_plugin.data import registry
-    from polargs_plugin.data.synthetic import generate_scene
 
-    view = generate_scene("bumpy_mixed", num_views=1, width=16, height=16).views[0]
+    view = synthetic_views("bumpy_mixed", num_views=1, width=16, height=16)[0]
     stokes = view.stokes.clone()
     stokes[1, 0, 3, 4] = float("nan")
     bad = dataclasses.replace(view, stokes=stokes, source=str(tmp_path / "s1_000.exr"))
@@ -386,10 +383,10 @@ def test_scene_names_that_gather_would_lose_are_refused(tmp_path, monkeypatch, e
 @pytest.fixture(scope="module")
 def scene16(tmp_path_factory):
     """A 16-bit scene folder of 4 views (the bundled scene's angle images, written exactly)."""
+    import scene_cache
     from polargs_plugin.data.scene_format import write_scene
-    from polargs_plugin.data.synthetic import generate_scene
 
-    scene = generate_scene("glossy_plane_sphere", num_views=4, width=24, height=24)
+    scene = scene_cache.scene("glossy_plane_sphere", num_views=4, width=24, height=24)
     scene.meta["quantize_bits"] = 16
     return write_scene(scene, tmp_path_factory.mktemp("scene16") / "scene")
 
@@ -455,13 +452,12 @@ def test_8bit_values_in_16bit_files_warn_naming_the_file_and_the_view(tmp_path, 
     assert len(dataset.views) == 4
 
 
-def test_a_bit_depth_beyond_the_files_is_refused_for_angle_images_and_raw_mosaics(tmp_path):
+def test_a_bit_depth_beyond_the_files_is_refused_for_angle_images_and_raw_mosaics(tmp_path, synthetic_views):
     from polargs_plugin.data.polar_folder import write_polar_folder
-    from polargs_plugin.data.synthetic import generate_scene
     from polargs_plugin.optics.mosaic import demosaic_polar
     from polargs_plugin.service import ReaderOptions, load_dataset
 
-    views = generate_scene("glossy_plane_sphere", num_views=3, width=24, height=24).views
+    views = synthetic_views("glossy_plane_sphere", num_views=3, width=24, height=24)
     folder = write_polar_folder(views, tmp_path / "polar", mode="angles", bit_depth=8)
     with pytest.raises(PolarInputError) as err:
         load_dataset(str(folder), ReaderOptions(bit_depth=16))
@@ -487,23 +483,23 @@ def test_brightness_outliers_are_views_a_factor_4_or_more_off_the_median(darker,
     assert brightness_outliers(views[:2]) == []  # no median to compare with
 
 
-def test_no_bundled_scene_has_a_brightness_outlier():
+def test_no_bundled_scene_has_a_brightness_outlier(synthetic_views):
     """Views that see more or less of the object differ in brightness by less than the factor 4."""
     from polargs_plugin.data.checks import brightness_outliers
-    from polargs_plugin.data.synthetic import SCENE_NAMES, generate_scene
+    from polargs_plugin.data.synthetic import SCENE_NAMES
 
     for name in SCENE_NAMES:
-        assert brightness_outliers(generate_scene(name, num_views=24, width=32, height=32).views) == [], name
+        assert brightness_outliers(synthetic_views(name, num_views=24, width=32, height=32)) == [], name
 
 
 # ------------------------------------------------------------------------- run folders and disks
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
     """A scene folder of 3 views of 24x24 (trains in about a second)."""
+    import scene_cache
     from polargs_plugin.data.scene_format import write_scene
-    from polargs_plugin.data.synthetic import generate_scene
 
-    return write_scene(generate_scene("bumpy_mixed", num_views=3, width=24, height=24),
+    return write_scene(scene_cache.scene("bumpy_mixed", num_views=3, width=24, height=24),
                        tmp_path_factory.mktemp("tiny") / "scene")
 
 

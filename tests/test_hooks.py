@@ -275,10 +275,8 @@ def test_densify_delegation_normal_loss_and_state(monkeypatch):
     assert resumed.state_dict() == state
 
 
-def test_densify_due_follows_the_dense_schedule():
-    from polargs_plugin.data.synthetic import generate_scene
-
-    views = generate_scene("glossy_plane_sphere", num_views=3, width=24, height=24).views
+def test_densify_due_follows_the_dense_schedule(synthetic_views):
+    views = synthetic_views("glossy_plane_sphere", num_views=3, width=24, height=24)
     cfg = _config()
     cfg.densify.enabled = True
     cfg.densify.start_iter, cfg.densify.end_iter, cfg.densify.interval = 10, 30, 10
@@ -293,12 +291,11 @@ def test_densify_due_follows_the_dense_schedule():
     assert not any(off.densify_due(it) for it in range(1, 41))
 
 
-def test_consistency_filter_uses_config_and_maps():
-    from polargs_plugin.data.synthetic import generate_scene
+def test_consistency_filter_uses_config_and_maps(synthetic_views):
     from polargs_plugin.densify.filters import consistency_filter
 
     # surface masks: GT depth on the floor as well, so the filter has much to keep or drop
-    views = generate_scene("glossy_plane_sphere", num_views=3, width=24, height=24, mask="surface").views
+    views = synthetic_views("glossy_plane_sphere", num_views=3, width=24, height=24, mask="surface")
     cfg = _config()
     cfg.densify.filters.max_relative_depth = 0.005
     hooks = PolarHooks(cfg)

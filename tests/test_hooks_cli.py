@@ -7,13 +7,12 @@ import torch
 
 from polargs_plugin.cli import main
 from polargs_plugin.data.scene_format import write_scene
-from polargs_plugin.data.synthetic import generate_scene
 
 PICTURES = ("aolp", "dolp", "masks", "i_diff", "i_chro", "target", "pri")
 
 
-def test_preprocess_writes_pictures_and_reuses_cache(tmp_path, capsys):
-    scene = generate_scene("glossy_plane_sphere", num_views=2, width=32, height=32)
+def test_preprocess_writes_pictures_and_reuses_cache(tmp_path, capsys, synthetic_scene):
+    scene = synthetic_scene("glossy_plane_sphere", num_views=2, width=32, height=32)
     dataset = write_scene(scene, tmp_path / "scene")
     out = tmp_path / "pre"
     assert main(["preprocess", str(dataset), "--out", str(out)]) == 0
@@ -51,8 +50,8 @@ def test_preprocess_bad_input_is_reported_and_writes_nothing(tmp_path, capsys):
     assert str(bad_config) in err and "no_such_knob" in err
 
 
-def test_preprocess_takes_the_train_settings_file_and_presets(tmp_path, capsys):
-    scene = generate_scene("glossy_plane_sphere", num_views=2, width=16, height=16)
+def test_preprocess_takes_the_train_settings_file_and_presets(tmp_path, capsys, synthetic_scene):
+    scene = synthetic_scene("glossy_plane_sphere", num_views=2, width=16, height=16)
     dataset = write_scene(scene, tmp_path / "scene")
     settings = tmp_path / "settings.json"
     settings.write_text(json.dumps({"polar": {"correction": {"mahalanobis_threshold": 0.5}}, "train": {"iterations": 5}}))

@@ -205,7 +205,7 @@ def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
         view.normal_gt = (math.cos(0.3) * n + math.sin(0.3) * m).float()
         views.append(view)
     for module in (mesh_cli, evaluation):  # the run is the analytic model, not a folder
-        monkeypatch.setattr(module, "load_run", lambda run_dir: Run(run_dir, model, Dataset("fake", views, "fake"), {}))
+        monkeypatch.setattr(module, "load_run", lambda run_dir, data=None: Run(run_dir, model, Dataset("fake", views, "fake"), {}))
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     gt_path = write_mesh(tmp_path / "gt.ply", o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=80))

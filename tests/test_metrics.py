@@ -293,13 +293,12 @@ def test_uncapped_and_signed_distance_fields():
 
 
 @pytest.mark.slow
-def test_object_region_culls_floor_and_unseen_gt():
+def test_object_region_culls_floor_and_unseen_gt(synthetic_scene):
     """Region "object" on glossy_plane_sphere: the predicted floor is culled to the sphere's
     silhouettes and the GT's never-seen bottom is left out of completeness."""
-    from polargs_plugin.data.synthetic import generate_scene
     from polargs_plugin.metrics import chamfer_distance
 
-    scene = generate_scene("glossy_plane_sphere", num_views=6, width=32, height=32)
+    scene = synthetic_scene("glossy_plane_sphere", num_views=6, width=32, height=32)
     full = (scene.mesh_vertices, scene.mesh_triangles)
     obj = scene.object_mesh()
     assert len(obj[1]) < len(full[1])

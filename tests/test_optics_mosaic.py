@@ -205,11 +205,10 @@ def test_real_mono_frames_show_no_bayer_colour_structure():
 
 
 @pytest.mark.parametrize("name", ["glossy_plane_sphere", "shiny_torus", "bumpy_mixed", "torus_knot"])
-def test_synthetic_mosaics_from_the_writer_are_told_apart(name):
-    from polargs_plugin.data.synthetic import generate_scene
+def test_synthetic_mosaics_from_the_writer_are_told_apart(name, synthetic_scene):
     from polargs_plugin.optics.pattern import check_mosaic_pattern, classify_mosaic, mosaic_colour_evidence
 
-    scene = generate_scene(name, num_views=4, width=128, height=128)
+    scene = synthetic_scene(name, num_views=4, width=128, height=128)
     quantise = lambda x: np.rint(np.clip(x.numpy(), 0, 1) * 255).astype(np.uint8)  # noqa: E731
     colours, monos = [], []
     for images in scene.angle_images:

@@ -240,7 +240,9 @@ def test_anchor_matching_twice_is_refused(tmp_path: Path, capsys: pytest.Capture
 
 def test_missing_file_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert run_main(CASES[0], str(tmp_path)) == 2
-    assert capsys.readouterr().err == f"error: {tmp_path / 'train.py'}: no such file\n"
+    assert capsys.readouterr().err == f"error: {tmp_path}: no train.py in {tmp_path}; pass the trainer's checkout or the file itself\n"
+    assert run_main(CASES[0], str(tmp_path / "absent.py")) == 2
+    assert capsys.readouterr().err == f"error: {tmp_path / 'absent.py'}: no such file or folder\n"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -514,6 +516,24 @@ def test_gsplat_simple_trainer_round_trip(fixture: str, tmp_path: Path, capsys) 
     compile(patched, "simple_trainer.py", "exec")
 
 
+def test_the_gsplat_script_finds_the_trainer_under_the_repository_root(tmp_path: Path) -> None:
+    """`patch.py GSPLAT_REPO` patches examples/simple_trainer.py; a folder without it is named with
+    the examples/ folder the script looked in."""
+    script = [sys.executable, str(ROOT / "adapters" / "gsplat" / "patch.py")]
+    (tmp_path / "repo" / "examples").mkdir(parents=True)
+    target = tmp_path / "repo" / "examples" / "simple_trainer.py"
+    target.write_bytes((TRAINERS / GSPLAT_TRAINERS[1]).read_bytes())
+    done = subprocess.run([*script, str(tmp_path / "repo")], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.startswith(f"{target}: patched, {len(GSPLAT_LINES)} lines inserted")
+    assert sum(line.endswith(MARKER) for line in target.read_text().splitlines()) == len(GSPLAT_LINES)
+    (tmp_path / "empty").mkdir()
+    refused = subprocess.run([*script, str(tmp_path / "empty")], capture_output=True, text=True, timeout=60)
+    examples = tmp_path / "empty" / "examples"
+    assert refused.returncode == 2 and refused.stderr == (
+        f"error: {tmp_path / 'empty'}: no simple_trainer.py in {tmp_path / 'empty'} or {examples}{os.sep}; "
+        "pass the trainer's checkout or the file itself\n")
+
+
 def test_gsplat_refuses_a_trainer_whose_strategy_is_not_stepped_after_backward(tmp_path: Path, capsys) -> None:
     text = (TRAINERS / GSPLAT_TRAINERS[0]).read_text().replace("strategy.step_post_backward(", "strategy.other(")
     checkout = tmp_path / "examples"
@@ -659,3 +679,41 @@ def test_scripts_run_without_site_packages(script: str, fixture: str, name: str,
     done = subprocess.run([sys.executable, "-S", "-I", "-c", probe, str(ROOT / "adapters" / script / "patch.py")],
                           capture_output=True, text=True, cwd=tmp_path)
     assert done.returncode == 0 and done.stdout.strip() == "[]", done.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# a trainer file that is a symbolic link
+
+LINKED_TRAINERS = [  # (adapter, fixture, the file's name in a checkout)
+    ("graphdeco", "graphdeco_2024_train.py", "train.py"),
+    ("gof", "gof_5245b20_train.py", "train.py"),
+    ("pgsr", "pgsr_de24f1a_train.py", "train.py"),
+    ("twodgs", "twodgs_1920a23_train.py", "train.py"),
+    ("gsplat", "gsplat_90d7b4b_simple_trainer.py", "simple_trainer.py"),
+]
+
+
+@pytest.mark.parametrize("adapter, fixture, name", LINKED_TRAINERS, ids=[row[0] for row in LINKED_TRAINERS])
+def test_patch_and_revert_act_on_a_linked_trainers_target_and_keep_the_link(adapter, fixture, name, tmp_path):
+    """`patch.py CHECKOUT` where CHECKOUT's trainer is a link: the file it points to is patched
+    (its backup beside it), the link stays a link, and --revert restores the target byte for byte."""
+    script = [sys.executable, str(ROOT / "adapters" / adapter / "patch.py")]
+    (tmp_path / "elsewhere").mkdir()
+    target = tmp_path / "elsewhere" / name
+    original = (TRAINERS / fixture).read_bytes()
+    target.write_bytes(original)
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    link = checkout / name
+    link.symlink_to(target)
+    done = subprocess.run([*script, str(checkout)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == f"{link}: a link; acting on its target {target} (the link is kept)\n"
+    assert done.stdout.startswith(f"{target}: patched, ")
+    assert link.is_symlink() and link.resolve() == target and MARKER in target.read_text()
+    assert (tmp_path / "elsewhere" / f"{name}.polargs-orig").read_bytes() == original
+    assert sorted(p.name for p in checkout.iterdir()) == [name]
+    done = subprocess.run([*script, str(checkout), "--revert"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert link.is_symlink() and link.resolve() == target and target.read_bytes() == original
+    assert sorted(p.name for p in (tmp_path / "elsewhere").iterdir()) == [name]

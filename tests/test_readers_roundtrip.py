@@ -20,8 +20,8 @@ from polargs_plugin.data.pandora import read_pandora, write_pandora
 from polargs_plugin.data.polar_folder import write_polar_folder
 from polargs_plugin.data.registry import detect_format, load_views
 from polargs_plugin.data.scene_format import write_scene
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.types import View
+import scene_cache
 
 RGBE_RELATIVE = 2.0**-7
 MIN_POLARIZED = 0.02  # |(s1, s2)| above which AoLP is compared ("DoLP meaningful")
@@ -54,7 +54,7 @@ def _red(height, width):
 
 @pytest.fixture(scope="module")
 def scene():
-    return generate_scene("glossy_plane_sphere", num_views=3, width=32, height=24, seed=0)
+    return scene_cache.scene("glossy_plane_sphere", num_views=3, width=32, height=24, seed=0)
 
 
 @pytest.fixture(scope="module")

@@ -306,13 +306,13 @@ def test_a_bad_resolution_is_one_line_naming_it(scene_folder, tmp_path, capsys):
     assert not (tmp_path / "b").exists()
 
 
-def test_ablate_and_demo_take_the_resolution_for_bundled_scenes_and_folders(tmp_path, monkeypatch, capsys):
-    import polargs_plugin.ablation.cell as cell_module
+def test_ablate_and_demo_take_the_resolution_for_bundled_scenes_and_folders(tmp_path, monkeypatch, capsys,
+                                                                           synthetic_views):
+    import polargs_plugin.ablation.pipeline as pipeline_module
     import polargs_plugin.service.data as service_data
     from polargs_plugin.ablation.cell import Cell
-    from polargs_plugin.data.synthetic import generate_scene
 
-    views = generate_scene(SCENE, num_views=3, width=16, height=16).views
+    views = synthetic_views(SCENE, num_views=3, width=16, height=16)
     calls = []
 
     def fake_load(spec, options):
@@ -323,7 +323,7 @@ def test_ablate_and_demo_take_the_resolution_for_bundled_scenes_and_folders(tmp_
         raise RuntimeError("stopped before meshing")
 
     monkeypatch.setattr(service_data, "load_dataset", fake_load)
-    monkeypatch.setattr(cell_module, "_mesh", stop_at_mesh)
+    monkeypatch.setattr(pipeline_module, "_mesh", stop_at_mesh)
     tiny = ["--views", "3", "--size", "32x32", "--iters", "1", "--train-set", "num_init_points=100", "--jobs", "1",
             "--quiet", "--variants", "base"]
     assert main(["demo", "--out", str(tmp_path / "demo"), "--resolution", "2", *tiny]) == 1
@@ -336,6 +336,18 @@ def test_ablate_and_demo_take_the_resolution_for_bundled_scenes_and_folders(tmp_
         grid = json.loads((tmp_path / out / "grid.json").read_text())
         cells = [Cell.from_dict(c) for c in (grid["cells"] if isinstance(grid, dict) else grid)]
         assert [c.reader for c in cells] == [expected] and cells[0].fingerprint()["reader"] == expected
+
+
+def test_demo_takes_a_family_scene_as_ablate_spells_it(tmp_path, monkeypatch, capsys):
+    import polargs_plugin.cli.ablate as ablate_cli
+
+    planned = []
+    monkeypatch.setattr(ablate_cli, "execute", lambda args, cells, command: planned.extend(cells) or 0)
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--scene", "family:16", "--views", "3"]) == 0
+    assert [(c.scene.name, c.scene.bundled, c.scene.seed, c.variant) for c in planned] == [
+        ("family-16", "family", 16, "base"), ("family-16", "family", 16, "full")]
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--scene", "family:x"]) == 2
+    assert "unknown scene 'family:x'" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------- estimates and refusal

@@ -21,13 +21,13 @@ from polargs_plugin.data.scene_format import (
     read_scene_folder,
     write_scene,
 )
-from polargs_plugin.data.synthetic import generate_scene
 from polargs_plugin.io import PolarInputError
+import scene_cache
 
 
 @pytest.fixture(scope="module")
 def scene():
-    return generate_scene("glossy_plane_sphere", num_views=8, width=48, height=48, seed=1)
+    return scene_cache.scene("glossy_plane_sphere", num_views=8, width=48, height=48, seed=1)
 
 
 @pytest.fixture(scope="module")
@@ -99,8 +99,8 @@ def test_png_bit_depth_and_channel_order(written):
     assert np.all(raw[..., 2][red_object.numpy()] >= raw[..., 0][red_object.numpy()])
 
 
-def test_sixteen_bit_round_trip(tmp_path):
-    scene = generate_scene("bumpy_mixed", num_views=2, width=24, height=20, quantize_bits=16, noise_std=0.0)
+def test_sixteen_bit_round_trip(tmp_path, synthetic_scene):
+    scene = synthetic_scene("bumpy_mixed", num_views=2, width=24, height=20, quantize_bits=16, noise_std=0.0)
     folder = write_scene(scene, tmp_path / "s16")
     raw = cv2.imread(str(folder / "polar" / "view_001_135.png"), cv2.IMREAD_UNCHANGED)
     assert raw.dtype == np.uint16 and raw.shape == (20, 24, 3)

@@ -37,13 +37,13 @@ def test_generate_seed_controls_noise(tmp_path):
 
 
 def test_generate_a_family_scene_with_its_visibility(tmp_path, capsys):
-    """--scene family --seed K: the seed's scene; its views and size override; the per-view
-    visibility of the object's triangles is written and reported."""
+    """--scene family:K (as ablate spells it; ``family --seed K`` too): the seed's scene; its views
+    and size override; the per-view visibility of the object's triangles is written and reported."""
     from polargs_plugin.data.family import family_settings
     from polargs_plugin.data.scene_format import read_scene
 
     out = tmp_path / "family"
-    assert main(["generate", "--scene", "family", "--seed", "16", "--out", str(out), "--views", "3", "--size", "36x36"]) == 0
+    assert main(["generate", "--scene", "family:16", "--out", str(out), "--views", "3", "--size", "36x36"]) == 0
     scene = read_scene(out)
     assert scene.name == "family-16" and len(scene.views) == 3 and scene.views[0].width == 36
     assert scene.meta["family"]["layout"] == family_settings(16).layout
@@ -51,6 +51,22 @@ def test_generate_a_family_scene_with_its_visibility(tmp_path, capsys):
     assert scene.visibility is not None and scene.visibility.shape[0] == 3
     printed = capsys.readouterr().out
     assert "family-16" in printed and "visibility  of the seen surface: many" in printed
+    other = tmp_path / "spelt-apart"
+    assert main(["generate", "--scene", "family", "--seed", "16", "--out", str(other), "--views", "3", "--size", "36x36"]) == 0
+    for name in ("scene.json", "polar/view_002_090.png"):
+        assert (other / name).read_bytes() == (out / name).read_bytes(), name
+
+
+def test_generate_refuses_a_seed_that_disagrees_with_the_scene_and_an_unknown_scene(tmp_path, capsys):
+    out = tmp_path / "x"
+    assert main(["generate", "--scene", "family:16", "--seed", "3", "--out", str(out), "--small"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --seed") and "family:16" in err and "\n" not in err and not out.exists()
+    for wrong in ("family:x", "no_such_scene"):
+        with pytest.raises(SystemExit) as stopped:
+            main(["generate", "--scene", wrong, "--out", str(out)])
+        err = capsys.readouterr().err
+        assert stopped.value.code == 2 and f"unknown scene '{wrong}'" in err and "family:K" in err
 
 
 def test_generate_small_option(tmp_path):

@@ -188,11 +188,10 @@ def test_train_config_round_trip_with_a_policy():
     assert TrainConfig.from_dict({**data, "threads": cfg.threads}) == cfg  # a policy object passes through
 
 
-def test_trainer_applies_its_policy(restore_threads):
+def test_trainer_applies_its_policy(restore_threads, synthetic_views):
     from polargs_plugin.backends.reference.trainer import Trainer
-    from polargs_plugin.data.synthetic import generate_scene
 
-    views = generate_scene("glossy_plane_sphere", num_views=2, width=16, height=16).views
+    views = synthetic_views("glossy_plane_sphere", num_views=2, width=16, height=16)
     trainer = Trainer(views, TrainConfig.cpu(num_init_points=50, init_resolution=16, progress=False,
                                              threads=ThreadPolicy(threads=1)))
     assert torch.get_num_threads() == 1 and numba.get_num_threads() == 1

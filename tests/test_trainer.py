@@ -334,13 +334,13 @@ def test_base_loss_is_vanilla_colour_loss_on_the_background_target(views):
 
     from polargs_plugin.losses import photometric_loss
 
-    trainer = Trainer(views, _config(background=(0.2, 0.4, 0.6), ssim_weight=0.3))
+    trainer = Trainer(views, _config(background=(0.2, 0.4, 0.6)))  # no hooks: vanilla's SSIM share 0.2
     pred, target = torch.rand(3, SIZE, SIZE), trainer.target(trainer.views[0])
     ssim = kornia.metrics.ssim(pred[None], target[None], 11).mean()
-    vanilla = 0.7 * (pred - target).abs().mean() + 0.3 * (1 - ssim)
+    vanilla = 0.8 * (pred - target).abs().mean() + 0.2 * (1 - ssim)
     assert torch.allclose(trainer.base_loss(pred, target), vanilla, atol=1e-6)
     # the very function PolarHooks' reflective replacement assumes, so the cancellation is exact
-    assert torch.equal(trainer.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.3))
+    assert torch.equal(trainer.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.2))
 
 
 @pytest.mark.slow

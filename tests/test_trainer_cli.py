@@ -21,6 +21,7 @@ from polargs_plugin.cli import train as train_cli
 from polargs_plugin.service import train as service_train
 from polargs_plugin.service.data import Dataset
 from polargs_plugin.types import View
+from provenance_check import check_provenance
 
 
 def _views() -> list[View]:
@@ -80,6 +81,15 @@ def test_train_writes_checkpoint_and_summary_then_resumes(fake_dataset, tmp_path
     summary = json.loads((run / "summary.json").read_text())
     assert summary["iterations"] == 5 and summary["resumed"] is True
     assert sorted(p.name for p in run.iterdir()) == ["checkpoint.pt", "fingerprint.json", "summary.json"]
+
+
+def test_train_records_provenance(fake_dataset, tmp_path):
+    """summary.json says which libraries, commit, command line, machine and threads made the run."""
+    run = tmp_path / "run"
+    assert main(["train", "fake", "--out", str(run), "--iters", "2", "--no-polar", "--quiet"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    check_provenance(summary["provenance"], command=f"polargs train fake --out {run} --iters 2 --no-polar --quiet",
+                     threads=torch.get_num_threads())
 
 
 def test_resume_without_checkpoint_and_missing_dataset(tmp_path, capsys):
@@ -144,7 +154,7 @@ def test_switches_without_hooks_are_refused(fake_dataset, tmp_path, capsys):
 def test_config_file_sets_any_field_and_unknown_keys_name_key_and_file(fake_dataset, tmp_path, capsys):
     settings = tmp_path / "settings.json"
     settings.write_text(json.dumps({"polar": {"losses": {"alpha_normal": 0.3}, "densify": {"enabled": False}},
-                                    "train": {"density": {"max_gaussians": 321}, "ssim_weight": 0.2}}))
+                                    "train": {"density": {"max_gaussians": 321}}}))
     run = tmp_path / "run"
     assert main(["train", "fake", "--out", str(run), "--iters", "1", "--quiet", "--config", str(settings)]) == 0
     summary = _summary(run)
@@ -152,6 +162,10 @@ def test_config_file_sets_any_field_and_unknown_keys_name_key_and_file(fake_data
     assert summary["config"]["density"]["max_gaussians"] == 321 and summary["config_file"] == str(settings)
     for content, key in (({"polar": {"losses": {"alpha_nrmal": 1}}}, "polar.losses: unknown setting 'alpha_nrmal'"),
                          ({"train": {"iterationz": 5}}, "train: unknown setting 'iterationz'"),
+                         # a setting that moved says where to
+                         ({"train": {"ssim_weight": 0.2}}, "train: setting 'ssim_weight' is no longer here: the colour "
+                                                           "loss's SSIM share is PolarConfig's losses.ssim_weight"),
+                         ({"polar": {"refractive_index": 1.5}}, "polar: setting 'refractive_index' is no longer here"),
                          ({"correction": {}}, "correction")):
         settings.write_text(json.dumps(content))
         out = tmp_path / f"bad-{key}"

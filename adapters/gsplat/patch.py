@@ -1,6 +1,9 @@
 """Insert the PolarGS calls into gsplat's ``examples/simple_trainer.py`` (nerfstudio-project/gsplat).
 
-    python adapters/gsplat/patch.py GSPLAT_CHECKOUT/examples [--dry-run] [--revert] [--force]
+    python adapters/gsplat/patch.py GSPLAT_CHECKOUT [--dry-run] [--revert] [--force]
+
+GSPLAT_CHECKOUT is the repository (its ``examples/simple_trainer.py`` is patched), its
+``examples/`` folder, or the file itself.
 
 Verified against v1.5.3 and main (90d7b4b, version 1.6.0). Three lines: the adapter's import
 after gsplat's strategy import; ``<runner>.polar = polargs_gsplat.attach(<runner>)`` in
@@ -87,4 +90,4 @@ ANCHORS = (
 )
 
 if __name__ == "__main__":
-    sys.exit(patching.main(sys.argv[1:], ANCHORS, __doc__, filename="simple_trainer.py"))
+    sys.exit(patching.main(sys.argv[1:], ANCHORS, __doc__, filename="simple_trainer.py", subfolders=("examples",)))

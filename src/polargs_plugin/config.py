@@ -30,9 +30,10 @@ import numbers
 import types
 import typing
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
-from typing import Any, Callable, Literal, TypeVar
+from typing import Any, Callable, ClassVar, Literal, TypeVar
 
 __all__ = [
+    "VANILLA_SSIM_WEIGHT",
     "CorrectionConfig",
     "LossConfig",
     "DensifyConfig",
@@ -235,6 +236,10 @@ class CheckedConfig:
     dotted path below ``where`` (e.g. ``densify.interval``).
     """
 
+    #: Settings this config had once, each with where it went (or why it went): a saved config
+    #: that still holds one is refused with that note rather than as an unknown setting.
+    RETIRED: ClassVar[dict[str, str]] = {}
+
     def __post_init__(self) -> None:
         self.validate()
 
@@ -296,6 +301,9 @@ def _fill(obj: Any, data: dict[str, Any], where: str) -> Any:
     hints = _hints(type(obj))
     for key, value in data.items():
         if key not in known:
+            note = type(obj).RETIRED.get(key)
+            if note is not None:
+                raise KeyError(f"{where + ': ' if where else ''}setting '{key}' is no longer here: {note}")
             raise KeyError(f"{where + ': ' if where else ''}unknown setting '{key}' (known: {sorted(known)})")
         current = getattr(obj, key)
         if is_dataclass(current) and not isinstance(value, type(current)):
@@ -371,6 +379,10 @@ class CorrectionConfig(CheckedConfig):
     max_impossible_fraction: float = field(default=0.05, metadata=within(0, 1))
 
 
+#: Vanilla 3DGS's share of D-SSIM in its colour loss (``lambda_dssim``).
+VANILLA_SSIM_WEIGHT = 0.2
+
+
 @dataclass
 class LossConfig(CheckedConfig):
     """Loss weights: L = L_c + alpha L_n + beta L_dn + gamma L_scale, L_c = L_non + lambda_ref L_ref.
@@ -388,9 +400,10 @@ class LossConfig(CheckedConfig):
             paper 0.05.
         gamma_scale: weight gamma of L_scale, the mean smallest scale (flat Gaussians); >= 0.
             Default and paper 50.
-        ssim_weight: share of D-SSIM in every colour loss, ``(1 - w) L1 + w D-SSIM``; must equal
-            the trainer's own (the reference trainer refuses a mismatch); in [0, 1]. Default 0.2
-            (vanilla 3DGS).
+        ssim_weight: share of D-SSIM in the trainer's colour loss, ``(1 - w) L1 + w D-SSIM``,
+            which L_ref's replacement cancels on reflective pixels: set it to your trainer's
+            (graphdeco's, GOF's and PGSR's ``lambda_dssim``). The reference trainer's colour loss
+            takes it from here; in [0, 1]. Default 0.2 (:data:`VANILLA_SSIM_WEIGHT`, vanilla 3DGS).
         depth_normal_from_iter: first iteration of L_dn; >= 0. Default and paper 7000.
         normal_until_after_dense: N_opt is refreshed only inside the Dense window, so L_n on
             every target pixel ends this many iterations after ``densify.end_iter`` (one Dense
@@ -410,7 +423,7 @@ class LossConfig(CheckedConfig):
     alpha_normal: float = field(default=0.2, metadata=at_least(0))
     beta_depth_normal: float = field(default=0.05, metadata=at_least(0))
     gamma_scale: float = field(default=50.0, metadata=at_least(0))
-    ssim_weight: float = field(default=0.2, metadata=within(0, 1))
+    ssim_weight: float = field(default=VANILLA_SSIM_WEIGHT, metadata=within(0, 1))
     depth_normal_from_iter: int = field(default=7000, metadata=at_least(0))
     normal_until_after_dense: int | None = field(default=100, metadata=at_least(0))
     normal_hold_deg: float | None = field(default=10.0, metadata=within(0, 180, low_open=True, unit="degrees"))
@@ -599,8 +612,6 @@ class PolarConfig(CheckedConfig):
         correction: module PC (:class:`CorrectionConfig`).
         losses: the loss weights and schedules (:class:`LossConfig`).
         densify: module Dense (:class:`DensifyConfig`).
-        refractive_index: refractive index of the scene's surfaces (the paper's 1.5); >= 1.
-            No module of the package reads it at present. Default 1.5.
         cache_dir: folder where ``PolarHooks.preprocess`` caches each view's maps (keyed by
             their inputs and the correction settings), or None: no cache. Default None.
     """
@@ -608,8 +619,12 @@ class PolarConfig(CheckedConfig):
     correction: CorrectionConfig = field(default_factory=CorrectionConfig)
     losses: LossConfig = field(default_factory=LossConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
-    refractive_index: float = field(default=1.5, metadata=at_least(1))
     cache_dir: str | None = None
+
+    RETIRED: ClassVar[dict[str, str]] = {
+        "refractive_index": "nothing read it (the bundled scenes' generator takes its own, `polargs generate --ior`); "
+                            "remove it from the settings",
+    }
 
     @classmethod
     def synthetic(cls) -> "PolarConfig":

@@ -25,6 +25,7 @@ __all__ = [
     "atomic_write",
     "atomic_path",
     "remove_stale_temporaries",
+    "remove_stale_temporaries_in",
     "atomic_torch_save",
     "torch_error_line",
     "current_umask",
@@ -90,11 +91,22 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
     another writer's temporary file in progress would go too.
     """
     path = Path(path)
-    # mkstemp's names: the prefix, 8 characters of [a-z0-9_], the suffix
-    name = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}{re.escape(path.suffix)}")
+    return _remove_temporaries(path.parent, re.escape(path.stem), path.suffix)
+
+
+def remove_stale_temporaries_in(folder: str | os.PathLike, suffix: str) -> list[Path]:
+    """:func:`remove_stale_temporaries` for every file of ``folder`` whose name ends in ``suffix``
+    (a cache of many entries, e.g. ``.pt``), under the same condition: the caller alone writes
+    the folder now."""
+    return _remove_temporaries(Path(folder), r"[^/]+", suffix)
+
+
+def _remove_temporaries(folder: Path, stem: str, suffix: str) -> list[Path]:
+    # mkstemp's names: the prefix ".<stem>.", 8 characters of [a-z0-9_], the suffix
+    name = re.compile(rf"\.{stem}\.[a-z0-9_]{{8}}{re.escape(suffix)}")
     removed = []
     with contextlib.suppress(OSError):
-        for candidate in path.parent.iterdir():
+        for candidate in folder.iterdir():
             if name.fullmatch(candidate.name) and candidate.is_file():
                 with contextlib.suppress(FileNotFoundError):
                     candidate.unlink()

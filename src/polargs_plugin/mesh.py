@@ -278,13 +278,19 @@ def write_mesh(path: str | os.PathLike, mesh: o3d.geometry.TriangleMesh) -> Path
 
 
 def read_mesh(path: str | os.PathLike) -> o3d.geometry.TriangleMesh:
-    """Read a triangle mesh; raises PolarInputError if it is missing, unreadable or empty."""
+    """Read a triangle mesh; raises PolarInputError if it is missing, unreadable, empty or has
+    vertices that are not finite (a NaN vertex would poison every distance measured to it)."""
     path = Path(path)
     if not path.is_file():
         raise PolarInputError(path, "mesh file not found")
     mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) == 0:
         raise PolarInputError(path, "not a readable triangle mesh (no triangles)")
+    vertices = np.asarray(mesh.vertices)
+    bad = int((~np.isfinite(vertices).all(axis=1)).sum())
+    if bad:
+        raise PolarInputError(path, f"{bad} of {len(vertices)} vertices are not finite (NaN or inf); "
+                              "remove them (and their triangles) before evaluating")
     return mesh
 
 

@@ -12,8 +12,11 @@ from polargs_plugin.io import atomic_write
 if TYPE_CHECKING:  # metrics imports open3d: loaded only when a cell evaluates
     from polargs_plugin.metrics import MeshLike
 
-__all__ = ["EVAL_CULL_DILATION", "REPORT_VIEW_COUNT", "write_curves", "report_view_indices", "write_report_data",
+__all__ = ["CURVES_NAME", "EVAL_CULL_DILATION", "REPORT_VIEW_COUNT", "write_curves", "report_view_indices", "write_report_data",
            "mesh_error"]
+
+#: The per-iteration curves of a run folder (:func:`write_curves`).
+CURVES_NAME = "curves.csv"
 
 #: `polargs eval`'s silhouette dilation (pixels) for the object region, the cells' default
 EVAL_CULL_DILATION = 2

@@ -32,17 +32,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Sequence, TextIO
 
-from polargs_plugin.ablation.cell import (
-    PARTIAL_DIR,
-    PARTIAL_STATE,
-    SUMMARY_NAME,
-    Cell,
-    CellFailed,
-    is_done,
-    mark_interrupted,
-    read_summary,
-    run_cell,
-)
+from polargs_plugin.ablation.cell import Cell, CellFailed, is_done, mark_interrupted, read_summary, run_cell
+from polargs_plugin.ablation.resume import PARTIAL_DIR, PARTIAL_STATE
+from polargs_plugin.service.runs import SUMMARY_NAME
 
 __all__ = [
     "JOBS_FILE", "SUBMITIT_DIR", "CLUSTERS", "CellJob", "CellStatus", "SubmititOptions", "SubmitResult",

@@ -22,9 +22,11 @@ import os
 from pathlib import Path
 from typing import Any
 
-from polargs_plugin.ablation.cell import RUN_FORMAT, SUMMARY_NAME, VISIBILITY_CLASSES, chamfer_figures
+from polargs_plugin.ablation.figures import VISIBILITY_CLASSES, chamfer_figures
+from polargs_plugin.ablation.pipeline import RUN_FORMAT
 from polargs_plugin.ablation.variants import VARIANTS
 from polargs_plugin.io import atomic_write
+from polargs_plugin.service.runs import SUMMARY_NAME
 
 __all__ = ["find_runs", "gather", "format_table", "format_results", "verdicts", "LEVEL", "scene_means", "dense_budget", "METRICS", "RESULT_FILES",
            "VERDICT_PAIRS"]
@@ -108,8 +110,15 @@ def _row(folder: Path) -> dict[str, Any]:
            "seed": s["seed"]}
     row.update({key: f.get(key) for key, _, _ in METRICS})
     row.update(total_seconds=s.get("timings", {}).get("total"), iterations=f.get("iterations"),
-               git_commit=(s.get("git") or {}).get("commit"), run=folder.name)
+               git_commit=_commit(s), run=folder.name)
     return row
+
+
+def _commit(summary: dict[str, Any]) -> str | None:
+    """The source commit a run recorded (under ``provenance``; at the top level in run folders
+    written before the provenance record)."""
+    record = summary.get("provenance") or summary
+    return (record.get("git") or {}).get("commit")
 
 
 def _stats(values: list[float]) -> dict[str, Any]:

@@ -25,8 +25,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence, TextIO
 
-from polargs_plugin.ablation.cell import INITS, Cell, CellFailed, is_done, mark_interrupted, run_cell
+from polargs_plugin.ablation.cell import Cell, CellFailed, is_done, mark_interrupted, run_cell
 from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, parse_scene
+from polargs_plugin.ablation.spec import INITS
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.data import ReaderOptions
 
@@ -68,6 +69,7 @@ class GridOptions:
         device: torch device (None: cuda if available, else cpu).
         checkpoint_every: iterations between the periodic checkpoints a run resumes from (None: 10 per run).
         reader: reader options of dataset-folder scenes (an error with bundled scenes).
+        command: the command line, recorded in each run's provenance (None: the running process's).
     """
 
     out: Path
@@ -88,6 +90,7 @@ class GridOptions:
     device: str | None = None
     checkpoint_every: int | None = None
     reader: ReaderOptions = field(default_factory=ReaderOptions)
+    command: str | None = None
 
 
 # How the command line spells each reader option, for the refusal with bundled scenes.
@@ -158,7 +161,7 @@ def build_cells(options: GridOptions, scene_texts: Sequence[str], variants: Sequ
                         factor=options.factor, train_overrides=train_overrides,
                         polar_overrides=dict(options.polar_overrides), mesh=_mesh_settings(options, scene),
                         eval={"num_samples": options.eval_samples, "cull": options.cull},
-                        threads=options.threads, device=options.device, checkpoint_every=options.checkpoint_every,
+                        threads=options.threads, device=options.device, checkpoint_every=options.checkpoint_every, command=options.command,
                         reader=_bundled_reader(reader) if scene.bundled is not None else dict(reader))
     hooked = [variant for variant in dict.fromkeys(variants)  # overrides are checked before anything runs
               if next(c for c in cells if c.variant == variant).configs()[1] is not None]

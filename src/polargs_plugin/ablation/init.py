@@ -7,7 +7,8 @@ triangulated with the views' KNOWN cameras (linear DLT) and kept when it lies in
 cameras, reprojects within ``max_reprojection_px`` in both, and is seen under at least
 ``min_angle_deg``. Poses are not re-estimated (they are the dataset's ground truth), so the
 points sit in the dataset's frame. Textureless regions get no points, as in real use; the caller
-falls back to the visual hull when too few points come out (``cell.MIN_SFM_POINTS``).
+falls back to the visual hull when too few points come out (:data:`MIN_SFM_POINTS`); :func:`initial_points`
+chooses between the three initialisations of :data:`~polargs_plugin.ablation.spec.INITS`.
 """
 
 from __future__ import annotations
@@ -15,10 +16,16 @@ from __future__ import annotations
 import contextlib
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-__all__ = ["sfm_points"]
+from polargs_plugin.ablation.spec import Cell
+
+__all__ = ["MIN_SFM_POINTS", "initial_points", "sfm_points"]
+
+#: SfM initialisation falls back to the visual hull below this many points.
+MIN_SFM_POINTS = 100
 
 
 def _picture(view) -> np.ndarray:
@@ -135,3 +142,31 @@ def _triangulated(vi, vj, x1: np.ndarray, x2: np.ndarray, max_reprojection_px: f
     cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
     keep &= cos <= np.cos(np.deg2rad(min_angle_deg))
     return X, keep
+
+
+def initial_points(cell: Cell, views, config):
+    """(init_points for the Trainer or None for its default visual hull, record for the summary)."""
+    import torch
+
+    info: dict[str, Any] = {"init": cell.init, "init_used": cell.init, "init_note": None}
+    if cell.init == "hull":
+        info["init_points"] = config.num_init_points
+        return None, info
+    if cell.init == "random":
+        from polargs_plugin.backends.reference.model import init_points_in_box
+
+        points = init_points_in_box(views, config.num_init_points, torch.Generator().manual_seed(cell.seed))
+        info["init_points"] = int(points[0].shape[0])
+        return points, info
+    try:
+        points, colors = sfm_points(views)
+        count = int(points.shape[0])
+        if count >= MIN_SFM_POINTS:
+            info["init_points"] = count
+            return (points, colors), info
+        note = f"SfM found {count} points (< {MIN_SFM_POINTS})"
+    except NotImplementedError as err:
+        note = f"SfM unavailable ({err})"
+    print(f"init: {note}; falling back to the visual hull", flush=True)
+    info.update(init_used="hull", init_note=note + "; fell back to the visual hull", init_points=config.num_init_points)
+    return None, info

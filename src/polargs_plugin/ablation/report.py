@@ -25,10 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from polargs_plugin.ablation.cell import CURVES_NAME, SUMMARY_NAME
+from polargs_plugin.ablation.artifacts import CURVES_NAME
 from polargs_plugin.ablation.gather import find_runs, gather
 from polargs_plugin.ablation.variants import DESCRIPTIONS, VARIANTS
 from polargs_plugin.io import atomic_path, atomic_write
+from polargs_plugin.service.runs import SUMMARY_NAME
 
 __all__ = ["write_report", "REPORT_NAME", "FIGURES_DIR"]
 

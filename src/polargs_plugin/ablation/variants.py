@@ -106,13 +106,9 @@ def variant_configs(variant: str, preset: str = "cpu", factor: float | None = No
         factor: vanilla schedule factor of the cpu preset (default 1/6: 5000 iterations).
         seed: training seed (TrainConfig.seed and the PatchMatch seed).
         train_overrides / polar_overrides: nested partial dicts applied last.
-
-    The PolarConfig's SSIM weight follows the TrainConfig's (the trainer refuses a mismatch).
     """
     train = train_config(preset, factor, seed, train_overrides)
     polar = polar_config(variant, preset, factor, seed, polar_overrides)
-    if polar is not None and "ssim_weight" not in (polar_overrides or {}).get("losses", {}):
-        polar.losses.ssim_weight = train.ssim_weight
     return train, polar
 
 

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.ablation.variants import DESCRIPTIONS, PRESETS, VARIANTS
 from polargs_plugin.cli.argtypes import image_size, non_negative_int, positive_float, positive_int
-from polargs_plugin.cli.common import add_reader_options, on_stop_signals, reader_options
+from polargs_plugin.cli.common import add_reader_options, command_line_of, on_stop_signals, reader_options
 from polargs_plugin.io import PolarInputError
 
 if TYPE_CHECKING:
@@ -191,7 +191,7 @@ def grid_options(args: argparse.Namespace) -> "GridOptions":
         polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
         mesh_preset=args.mesh_preset, voxel=args.voxel, eval_samples=args.eval_samples, cull=not args.no_cull,
         threads=args.threads_per_run, device=args.device, checkpoint_every=getattr(args, "checkpoint_every", None),
-        reader=reader_options(args),
+        reader=reader_options(args), command=command_line_of(args, args.command),
     )
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import shlex
 import signal
 import sys
 from typing import Callable, Iterator
@@ -16,10 +17,16 @@ from typing import Callable, Iterator
 from polargs_plugin.cli.argtypes import positive_int
 from polargs_plugin.service.data import PATTERNS, ReaderOptions
 
-__all__ = ["add_reader_options", "reader_options", "print_error", "on_stop_signals", "EXIT_BAD_INPUT"]
+__all__ = ["add_reader_options", "reader_options", "print_error", "on_stop_signals", "command_line_of", "EXIT_BAD_INPUT"]
 
 #: Exit status of an ordinary error (bad input, a missing file, a refused setting).
 EXIT_BAD_INPUT = 2
+
+
+def command_line_of(args: argparse.Namespace, name: str) -> str:
+    """The command line as the user typed it (``polargs NAME ...``; ``polargs NAME`` when the
+    command was called from Python without one), for provenance and locks."""
+    return shlex.join(["polargs", *(getattr(args, "_argv", None) or [name])])
 
 
 def _bit_depth(text: str) -> int:

@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), metavar="DIR", help="output folder (default out/demo)")
-    p.add_argument("--scene", default="glossy_plane_sphere", help="bundled scene (default glossy_plane_sphere)")
+    p.add_argument("--scene", default="glossy_plane_sphere", help="bundled scene, or family:K, a scene of the procedural family (default glossy_plane_sphere)")
     p.add_argument("--variants", default="base,full", metavar="V,...", help="variants to train (default base,full)")
     p.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     add_run_options(p)
@@ -45,13 +45,14 @@ def run(args: argparse.Namespace) -> int:
     from polargs_plugin.ablation.scenes import bundled_names
     from polargs_plugin.ablation.variants import parse_variants
     from polargs_plugin.cli.ablate import build_cells, command_line, execute
+    from polargs_plugin.data.family import FAMILY, parse_family
     from polargs_plugin.io import PolarInputError
 
     out: Path = args.out
     if out.exists() and not out.is_dir():
         raise PolarInputError(out, "exists and is not a folder")
-    if args.scene not in bundled_names():
-        raise PolarInputError("--scene", f"unknown bundled scene '{args.scene}' (known: {', '.join(bundled_names())})")
+    if args.scene not in bundled_names() and parse_family(args.scene) is None:
+        raise PolarInputError("--scene", f"unknown scene '{args.scene}' (known: {', '.join(bundled_names())}, {FAMILY}:K)")
     try:
         variants = parse_variants(args.variants)
     except ValueError as err:

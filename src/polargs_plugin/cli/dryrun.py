@@ -7,6 +7,7 @@ import tempfile
 from pathlib import Path
 
 from polargs_plugin.cli.argtypes import positive_int
+from polargs_plugin.cli.common import command_line_of
 
 _SUMMARY = "run a patched upstream train.py on the CPU for a few hundred iterations and check it"
 
@@ -57,9 +58,11 @@ def run(args: argparse.Namespace) -> int:
         extra = extra[1:]
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="polargs-dryrun-"))
     request = DryRunRequest(checkout=args.checkout, trainer=args.trainer, workdir=workdir, iterations=args.iters,
-                            interval=args.interval, train_arguments=tuple(extra), compare=not args.no_compare)
+                            interval=args.interval, train_arguments=tuple(extra), compare=not args.no_compare,
+                            command=command_line_of(args, "dryrun"))
     result = dry_run(request, progress=lambda message: print(message, flush=True))
     for line in describe(result.checks):
         print(line)
     print(f"logs        {', '.join(str(p) for p in result.logs.values())}")
+    print(f"summary     {workdir / 'summary.json'}")
     return 0 if result.ok else 1

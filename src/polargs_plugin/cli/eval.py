@@ -15,19 +15,42 @@ _EPILOG = """examples:
   polargs eval runs/sphere --gt scenes/sphere --normals    # plus normal MAE vs GT normal maps
   polargs eval my_mesh.ply --gt gt.ply --max-dist 20 --fscore-threshold 1 --units mm
   polargs eval my_mesh.ply --gt scenes/sphere --views scenes/sphere   # object region from the scene's cameras
+  polargs eval runs/sphere --gt /new/place/sphere --data /new/place/sphere   # the run's dataset moved since
 
 RUN_DIR_or_MESH: a run folder (its tsdf_mesh.ply from `polargs mesh` is evaluated; --normals and the
 object region also use its model and views) or a mesh file. Region (default: object when cameras are
 known): predicted points are culled to the dilated silhouettes of the GT mesh and GT points no view
-sees are left out, and the normal MAE counts only the pixels where the GT object itself is seen
-(docs/evaluation.md). Chamfer: accuracy = mean distance predicted -> GT,
-completeness = GT -> predicted, chamfer = their mean; distances above --max-dist are dropped (DTU) and
-the uncapped means are reported next to them; defaults are 5 % (outlier cap) and 0.5 % (F-score) of
-the GT bounding-box diagonal. The signed distance (outside positive) tells whether the mesh sits
-inside or outside the true surface. Where the views carry ground-truth depth maps (the generated
-scenes do), the uncapped Chamfer over the GT surface some view sees and the completeness of the GT
-points seen by many views (>= 4 at an incidence below 70 deg), by few, or only at grazing angles are
-reported too. Results are printed and written to metrics.json.
+sees are left out, and the normal MAE counts only the pixels where the GT object itself is seen.
+Distances are in the GT mesh's units; the defaults of --max-dist and --fscore-threshold are 5 % and
+0.5 % of the GT bounding-box diagonal (docs/evaluation.md).
+
+figures, one row each (their keys in metrics.json in brackets):
+  region                       object, masks or all, and the shares of the predicted and GT samples
+                               it kept [region, pred_kept_fraction, gt_kept_fraction]
+  accuracy (pred -> GT)        mean distance from the predicted samples to the GT, distances above
+                               --max-dist dropped (DTU); uncapped: over all [accuracy, accuracy_uncapped]
+  completeness (GT -> pred)    the same from the GT samples to the prediction
+                               [completeness, completeness_uncapped]
+  Chamfer (mean)               (accuracy + completeness) / 2 [chamfer, chamfer_uncapped]
+  F-score @ T                  harmonic mean of precision (predicted samples within T of the GT) and
+                               recall (GT samples within T of the prediction), T = --fscore-threshold
+                               [fscore, precision, recall, fscore_threshold]
+  outlier cap (dropped)        --max-dist and the shares of predicted / GT samples beyond it
+                               [max_dist, accuracy_outliers, completeness_outliers]
+  signed distance (outside +)  median and mean signed distance of the predicted samples to the GT
+                               surface (negative: the mesh sits inside), share inside
+                               [signed_distance_median, signed_distance_mean, inside_fraction]
+  visible surface              where the views carry GT depth maps (generated scenes do): the uncapped
+                               Chamfer over the GT surface some view sees, its completeness, and the
+                               share of GT seen [chamfer_visible, completeness_visible, visible_fraction]
+  completeness by view         uncapped completeness of the GT seen well (incidence below 70 deg) by
+                               4 views or more (many), by 1-3 (few), or only at grazing angles
+                               (grazing), with each class's share of the seen GT
+                               [completeness_by_visibility, visibility_shares]
+  samples (pred / GT)          samples compared [num_pred_points, num_gt_points]
+  normal MAE                   with --normals: mean angle in degrees between rendered and GT normals,
+                               per view then averaged [normal_mae_deg, normal_mae_per_view, normal_region]
+Results are printed and written to metrics.json.
 """
 
 
@@ -53,6 +76,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "all: whole meshes (default for a mesh file without --views)")
     parser.add_argument("--cull", action="store_true", help="same as --region object (kept for old scripts)")
     parser.add_argument("--views", metavar="DATASET", help="dataset whose cameras (and masks) define the region for a mesh file")
+    parser.add_argument("--data", metavar="NEW_PATH", default=None,
+                        help="a run's dataset, moved since training (checked against the run's fingerprint.json)")
     parser.add_argument("--num-samples", type=int, default=1_000_000, help="points sampled per mesh (default 1e6)")
     parser.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
     parser.add_argument("--max-dist", type=float, help="drop distances above this (default 5%% of the GT box diagonal)")
@@ -62,6 +87,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, help="metrics file (default RUN_DIR/metrics.json or MESH.metrics.json)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
+
+
+def _figure(value: float | None) -> str:
+    """A figure as printed; a class without samples has none (NaN, or null once in metrics.json)."""
+    return "none" if value is None or math.isnan(value) else f"{value:.4g}"
 
 
 def format_table(metrics: dict[str, Any]) -> str:
@@ -87,7 +117,7 @@ def format_table(metrics: dict[str, Any]) -> str:
             rows.append(("visible surface", f"Chamfer {cd['chamfer_visible']:.5g} {unit} uncapped, completeness "
                          f"{cd['completeness_visible']:.5g} over the {100 * cd['visible_fraction']:.1f} % of GT some view sees"))
             rows.append(("completeness by view", ", ".join(
-                f"{name} {cd['completeness_by_visibility'][name]:.4g} ({100 * share:.0f} %)"
+                f"{name} {_figure(cd['completeness_by_visibility'][name])} ({100 * share:.0f} %)"
                 for name, share in cd["visibility_shares"].items())))
         rows.append(("samples (pred / GT)", f"{cd['num_pred_points']} / {cd['num_gt_points']}"))
     if metrics.get("normal_mae_deg") is not None:
@@ -103,7 +133,7 @@ def format_table(metrics: dict[str, Any]) -> str:
 def settings_from_args(args: argparse.Namespace) -> EvalSettings:
     """The :class:`EvalSettings` of parsed ``polargs eval`` options."""
     return EvalSettings(
-        gt=args.gt, normals=args.normals, region=args.region, cull=args.cull, views=args.views,
+        gt=args.gt, normals=args.normals, region=args.region, cull=args.cull, views=args.views, data=args.data,
         num_samples=args.num_samples, seed=args.seed, max_dist=args.max_dist, fscore_threshold=args.fscore_threshold,
         units=args.units, cull_dilation=args.cull_dilation,
     )

@@ -14,10 +14,12 @@ _EPILOG = """examples:
   polargs generate --scene bumpy_mixed --out raw36 --views 36 --size 2448x2048 --mosaic rgb --bits 16 --no-cameras
   polargs generate --scene glossy_plane_sphere --out raw-sfm --views 36 --size 2448x2048 --mosaic rgb --bits 16 \
       --no-cameras --floor-texture speckle                           # raw frames SfM can register
-  polargs generate --scene family --seed 17 --out scenes/family-17  # a scene of the procedural family
+  polargs generate --scene family:17 --out scenes/family-17        # a scene of the procedural family
 
---scene family renders the family's scene of --seed (shape, materials, lights, exposure, noise,
-cameras, views and size all drawn from the seed; --views, --size and --noise override theirs).
+--scene family:K renders the family's scene of seed K (shape, materials, lights, exposure, noise,
+cameras, views and size all drawn from the seed; --views, --size and --noise override theirs), as
+`polargs ablate --scenes family:K` and `polargs demo --scene family:K` spell it; `--scene family
+--seed K` is the same scene.
 Seeds below 10000 are for development, seeds from 10000 on are test seeds (docs/scene-family.md).
 
 The folder holds four RGB angle images per view (0/45/90/135 deg), cameras.json (K and
@@ -49,16 +51,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--scene", required=True, choices=(*SCENE_NAMES, FAMILY),
-                        help="which procedural scene; family: the procedural family's scene of --seed")
+    parser.add_argument("--scene", required=True, type=_scene_name, metavar="SCENE",
+                        help=f"which procedural scene: {', '.join(SCENE_NAMES)}, or {FAMILY}:K (the procedural "
+                        f"family's scene of seed K; {FAMILY} alone: of --seed)")
     parser.add_argument("--out", required=True, type=Path, help="output folder (created; must be absent or empty)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing scene folder --out (as a whole)")
     parser.add_argument("--views", type=positive_int, default=None, help="number of cameras (default 24; family: the seed's)")
     parser.add_argument("--size", type=image_size, default=None, metavar="WxH",
                         help="image size (default 128x128; family: the seed's)")
     parser.add_argument("--small", action="store_true", help="test-sized scene: 8 views of 48x48 (overrides --views/--size)")
-    parser.add_argument("--seed", type=non_negative_int, default=0,
-                        help="sensor-noise seed (default 0); for --scene family also the scene's seed")
+    parser.add_argument("--seed", type=non_negative_int, default=None,
+                        help="sensor-noise seed (default 0; family:K: K); for a family scene also the scene's seed")
     parser.add_argument("--noise", type=float, default=None,
                         help="Gaussian noise std per angle image (default 0.005; family: the seed's)")
     parser.add_argument("--bits", type=int, choices=(8, 16), default=8, help="sensor bit depth (default 8)")
@@ -84,18 +87,42 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _scene_name(text: str) -> tuple[str, int | None]:
+    """``--scene``: a bundled scene's name, ``family``, or ``family:K`` -> (name, K or None)."""
+    from polargs_plugin.data.family import FAMILY, parse_family
+    from polargs_plugin.data.synthetic import SCENE_NAMES
+
+    seed = parse_family(text)
+    if seed is not None:
+        return FAMILY, seed
+    if text in (*SCENE_NAMES, FAMILY):
+        return text, None
+    raise argparse.ArgumentTypeError(f"unknown scene {text!r} (known: {', '.join(SCENE_NAMES)}, {FAMILY}:K)")
+
+
+def _scene_and_seed(scene: tuple[str, int | None], seed: int | None) -> tuple[str, int]:
+    """The scene's name and its seed: K of ``family:K``, else ``--seed`` (default 0)."""
+    from polargs_plugin.io import PolarInputError
+
+    name, own_seed = scene
+    if own_seed is not None and seed is not None and seed != own_seed:
+        raise PolarInputError("--seed", f"{seed} disagrees with the seed {own_seed} of --scene {name}:{own_seed}; give one")
+    return name, own_seed if own_seed is not None else (seed or 0)
+
+
 def run(args: argparse.Namespace) -> int:
     """Generate, write and summarise one scene."""
     from polargs_plugin.data.synthetic import SMALL_SETTINGS
     from polargs_plugin.io import PolarInputError
     from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder
 
+    scene, seed = _scene_and_seed(args.scene, args.seed)
     if args.small:
         args.views, args.size = SMALL_SETTINGS["num_views"], (SMALL_SETTINGS["width"], SMALL_SETTINGS["height"])
     width, height = args.size or (None, None)
     if args.no_cameras and args.mosaic is None:
         raise PolarInputError("--no-cameras", "only with --mosaic (a scene folder always holds its cameras)")
-    request = SceneRequest(args.scene, views=args.views, width=width, height=height, seed=args.seed,
+    request = SceneRequest(scene, views=args.views, width=width, height=height, seed=seed,
                            noise_std=args.noise, bits=args.bits, refractive_index=args.ior, mask=args.mask,
                            pictures=args.pictures, mosaic=args.mosaic, cameras=not args.no_cameras,
                            floor_texture=args.floor_texture)
@@ -103,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     stats, meta = made.statistics, made.meta
     print(f"scene       {made.name}: {meta['description']}")
     print(f"views       {made.num_views} x {meta['width']}x{meta['height']}, {args.bits}-bit, "
-          f"noise {meta['noise_std']:.4g}, seed {args.seed}"
+          f"noise {meta['noise_std']:.4g}, seed {seed}"
           + (f"; {args.mosaic} raw mosaics" + ("" if request.cameras else ", no cameras (for --sfm)") if args.mosaic else ""))
     print(f"object      {stats['object_fraction']:.1%} of pixels; mesh {stats['mesh_vertices']} vertices")
     print(f"highlights  {stats['highlight_fraction']:.1%} of object pixels, overexposed {stats['overexposed_fraction']:.1%}")

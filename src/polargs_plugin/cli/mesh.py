@@ -13,6 +13,7 @@ _EPILOG = """examples:
   polargs mesh runs/sphere                       # synthetic preset, writes runs/sphere/tsdf_mesh.ply
   polargs mesh runs/dtu24 --preset paper         # voxel 0.008, SDF truncation 0.04, depth truncation 10
   polargs mesh runs/sphere --voxel 0.004 --depth expected --out sphere_fine.ply
+  polargs mesh runs/sphere --data /new/place/scenes/sphere   # the run's dataset moved since training
 
 Presets (scene units): paper = 0.008 / 0.04 / 10 (PolarGS); synthetic = 1/128 / 4/128 / 6 for
 objects of radius ~1 seen from distance ~3 at 128 px. --voxel alone keeps the preset's
@@ -46,6 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="drop connected pieces with fewer triangles than FRACTION of the largest "
                         "(default 0.05; 1 keeps only the largest, 0 keeps all)")
     parser.add_argument("--out", type=Path, help=f"output mesh (default RUN_DIR/{MESH_NAME})")
+    parser.add_argument("--data", metavar="NEW_PATH", default=None,
+                        help="the run's dataset, moved since training (checked against the run's fingerprint.json)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
@@ -63,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     settings.tsdf(str(args.run_dir))  # bad settings are refused before a dataset is read
     if not args.run_dir.is_dir():
         raise PolarInputError(args.run_dir, "run folder not found")
-    result, path = mesh_run(load_run(args.run_dir), settings, args.out, progress=not args.quiet)
+    result, path = mesh_run(load_run(args.run_dir, args.data), settings, args.out, progress=not args.quiet)
     info = result.info
     print(
         f"mesh: {path} ({info['vertices']} vertices, {info['triangles']} triangles) from {info['views']} views; "

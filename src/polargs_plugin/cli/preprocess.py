@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from polargs_plugin.cli.common import add_reader_options, reader_options
+
+from polargs_plugin.cli.common import add_reader_options, command_line_of, reader_options
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.configs import PRESETS
 
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"raw mosaics: {dataset.pattern}{told}")
         if dataset.sfm_model:
             print(f"SfM: model written to {dataset.sfm_model}")
-        done = preprocess(dataset.views, config, out, pictures=not args.no_pictures)
+        done = preprocess(dataset.views, config, out, pictures=not args.no_pictures, command=command_line_of(args, "preprocess"))
     except (PolarInputError, OSError) as err:
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
@@ -86,8 +87,9 @@ def run(args: argparse.Namespace) -> int:
             raise
         raise PolarInputError(err.filename or out, err.strerror or str(err)) from None
     views = dataset.views
-    print(f"maps: reused {done.reused} of {len(views)} views from {done.cache}" if done.reused
-          else f"maps: computed {len(views)} views")
+    for note in done.notes:
+        print(note)
+    print(done.describe())
     for view, view_maps in zip(views, done.maps):
         print(_view_line(view, view_maps))
     print(f"maps cached in {done.cache}" + ("" if done.pictures is None else f", pictures in {done.pictures}"))

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.cli.argtypes import non_negative_int, positive_float, positive_int
-from polargs_plugin.cli.common import add_reader_options, on_stop_signals, print_error, reader_options
+from polargs_plugin.cli.common import add_reader_options, command_line_of, on_stop_signals, print_error, reader_options
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.configs import PRESETS, SCHEDULES, SWITCHES
 
@@ -147,7 +147,7 @@ def _request(args: argparse.Namespace) -> TrainRequest:
     return TrainRequest(
         dataset=args.dataset, out=Path(args.out), train=train, polar=polar, reader=reader_options(args),
         maps_cache=args.maps_cache, resume=args.resume, checkpoint_every=args.checkpoint_every,
-        command=shlex.join(["polargs", *(getattr(args, "_argv", None) or ["train"])]), memory_check=not args.no_memory_check,
+        command=command_line_of(args, "train"), memory_check=not args.no_memory_check,
         labels={"schedule": schedule, "preset": preset, "switches": flags,
                 "config_file": None if args.config is None else str(args.config)},
     )

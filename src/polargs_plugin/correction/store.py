@@ -201,34 +201,44 @@ class MapsStore(Mapping[str, PolarMaps]):
         self._devices: dict[str, torch.device] = {}
         self._dtypes: dict[str, torch.dtype] = {}  # what each view's maps decode to (their intensity's)
         self._recent = BytesLRU(budget)
+        #: views whose maps were read from the folder's cache
+        self.reused = 0
+        #: ``{view name: why}`` for views whose cache entry existed but could not be used, and
+        #: was computed again and overwritten
+        self.rebuilt: dict[str, str] = {}
 
     def prepare(self, view: View, config: PolarConfig, compute: Callable[[], PolarMaps]) -> None:
         """Make ``store[view.name]`` available: from the cache when it holds a valid entry for this
         view and these settings, else ``compute()``-d now (and cached). A cache entry that cannot
-        be trusted is recomputed (with a warning when it is readable but wrong)."""
+        be trusted is recomputed and overwritten, with a warning that says why (recorded in
+        :attr:`rebuilt`)."""
         self._devices[view.name] = view.device
         if self.folder is None:
             data = self._memory[view.name] = compact_maps(compute())
         else:
             path = maps_cache_file(self.folder, view, maps_cache_key(view, config))
-            data = self._read(path, view) if path.is_file() else None
+            data, problem = self._read(path, view) if path.is_file() else (None, None)
+            if problem is not None:
+                self.rebuilt[view.name] = problem
+                warnings.warn(f"{path}: cache entry of {describe_view(view)} rebuilt: {problem}", stacklevel=3)
             if data is None:
                 data = compact_maps(compute())
                 atomic_torch_save(data, path)
+            else:
+                self.reused += 1
             self._files[view.name] = path
             self._recent.put(view.name, data, tensor_bytes(data))
         self._dtypes[view.name] = expanded_dtype(data["intensity"])
 
-    def _read(self, path: Path, view: View) -> dict[str, Tensor] | None:
+    def _read(self, path: Path, view: View) -> tuple[dict[str, Tensor] | None, str | None]:
+        """``(the entry, None)``, or ``(None, why it cannot be used)``."""
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
-        except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError):
-            return None  # unreadable cache entry: recompute and overwrite it
+        except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError) as err:
+            first = (str(err).strip().splitlines() or [""])[0][:120]
+            return None, f"unreadable ({type(err).__name__}{': ' + first if first else ''}; cut short or overwritten?)"
         problem = _entry_problem(data, view.height, view.width)
-        if problem is None:
-            return data
-        warnings.warn(f"{path}: cache entry of {describe_view(view)} not used ({problem}); recomputed", stacklevel=4)
-        return None
+        return (data, None) if problem is None else (None, problem)
 
     def compact(self, name: str) -> dict[str, Tensor]:
         """The stored (compact, CPU) maps of view ``name``."""

@@ -20,8 +20,8 @@
 The same seed gives the same scene on every machine (numpy's PCG64 stream of ``seed``). Seeds
 below :data:`TEST_SEED_START` are for development; seeds from it on are test seeds, reported and
 never used to choose a rule or a default (docs/results.md, "Protocol"). The scene's name is
-``family-<seed>`` (:func:`family_name`); ``polargs generate --scene family --seed K`` and
-``polargs ablate --scenes family:K`` render it.
+``family-<seed>`` (:func:`family_name`); ``polargs generate --scene family:K``, ``polargs demo
+--scene family:K`` and ``polargs ablate --scenes family:K`` render it.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from polargs_plugin.data.scenes import (
     SceneSpec,
     Texture,
     plane,
+    same_arguments_as,
     tube,
 )
 
@@ -63,7 +64,7 @@ __all__ = [
     "is_test_seed",
 ]
 
-#: The family's name on the command line (``--scene family --seed K``, ``family:K``).
+#: The family's name on the command line (``family:K``; ``polargs generate --scene family --seed K`` too).
 FAMILY = "family"
 #: Seeds from here on are test seeds: reported only, never used to choose (docs/results.md).
 TEST_SEED_START = 10_000
@@ -546,50 +547,29 @@ def _plain(record: dict[str, Any]) -> dict[str, Any]:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in record.items()}
 
 
-def generate_family_scene(
+def generate_family_scene_views(
     seed: int,
     num_views: int | None = None,
     size: tuple[int, int] | None = None,
     noise_std: float | None = None,
-    quantize_bits: int = 8,
-    *,
-    mask: str = "object",
-    progress: bool = False,
-) -> "SyntheticScene":
-    """Render the scene of ``seed`` with its own views, size and noise (or the ones given).
+    **options: Any,
+) -> Iterator[SyntheticScene]:
+    """Render the scene of ``seed`` with its own views, size and noise (or the ones given), one
+    view at a time (as :func:`~polargs_plugin.data.synthetic.generate_scene_views`).
 
     Args:
         seed: the family seed; it is also the sensor-noise seed.
         num_views: None: the layout's (24-36, 12 for the sparse layout).
         size: (width, height); None: the seed's square size (128-160 px).
         noise_std: None: the seed's.
-        quantize_bits: sensor bit depth.
-        mask: what the masks mark (:data:`polargs_plugin.data.synthetic.MASK_KINDS`).
-        progress: a progress bar over the views.
+        **options: any other argument of
+            :func:`~polargs_plugin.data.synthetic.generate_scene_views` (``quantize_bits``,
+            ``mask``, ``progress``, ``floor_texture``, ...), with its default there.
 
-    Returns:
-        the :class:`~polargs_plugin.data.synthetic.SyntheticScene`, its meta with a ``family`` entry
-        (:meth:`FamilyScene.describe`).
+    Yields:
+        one :class:`~polargs_plugin.data.synthetic.SyntheticScene` per view, its meta with a
+        ``family`` entry (:meth:`FamilyScene.describe`).
     """
-    from polargs_plugin.data.synthetic import assemble_scene
-
-    return assemble_scene(generate_family_scene_views(seed, num_views, size, noise_std, quantize_bits, mask=mask,
-                                                      progress=progress))
-
-
-def generate_family_scene_views(
-    seed: int,
-    num_views: int | None = None,
-    size: tuple[int, int] | None = None,
-    noise_std: float | None = None,
-    quantize_bits: int = 8,
-    *,
-    mask: str = "object",
-    progress: bool = False,
-    floor_texture: str | None = None,
-) -> Iterator["SyntheticScene"]:
-    """:func:`generate_family_scene` one view at a time (as
-    :func:`~polargs_plugin.data.synthetic.generate_scene_views`); arguments as there."""
     from polargs_plugin.data.synthetic import generate_scene_views
 
     drawn = family_scene(seed)
@@ -598,7 +578,15 @@ def generate_family_scene_views(
     described = drawn.describe()
     for part in generate_scene_views(drawn.spec, num_views=num_views or settings.num_views, width=width, height=height,
                                      seed=int(seed), noise_std=settings.noise_std if noise_std is None else noise_std,
-                                     quantize_bits=quantize_bits, mask=mask, progress=progress,
-                                     floor_texture=floor_texture):
+                                     **options):
         part.meta["family"] = described
         yield part
+
+
+@same_arguments_as(generate_family_scene_views)
+def generate_family_scene(*args: Any, **kwargs: Any) -> SyntheticScene:
+    """The family scene of ``seed``, all its views at once: the parts
+    :func:`generate_family_scene_views` yields (arguments exactly as there), assembled."""
+    from polargs_plugin.data.synthetic import assemble_scene
+
+    return assemble_scene(generate_family_scene_views(*args, **kwargs))

@@ -55,7 +55,7 @@ from polargs_plugin.data.imageio_utils import (
     write_npy,
     write_png,
 )
-from polargs_plugin.data.views import ViewCollector
+from polargs_plugin.data.views import ViewCollector, warn_unused_files
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.optics.stokes import aolp_from_stokes
 from polargs_plugin.types import View
@@ -132,6 +132,8 @@ def read_nersp(folder: str | os.PathLike, normalize: bool = True, check_scale: b
     stems = sorted(p.stem for p in (folder / "s0").glob("*.npy"))
     if not stems:
         raise PolarInputError(folder / "s0", "no .npy Stokes files")
+    components = [path for sub in ("s1", "s2") if (folder / sub).is_dir() for path in (folder / sub).glob("*.npy")]
+    warn_unused_files(folder, components, set(stems), lambda path: path.stem, "no s0/ file of that view")
     collector = ViewCollector(folder, check_scale, resolution)
     for stem in stems:
         if not stem.isdigit():

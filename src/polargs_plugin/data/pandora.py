@@ -35,7 +35,7 @@ import numpy as np
 
 from polargs_plugin.data import cameras as cam
 from polargs_plugin.data.imageio_utils import check_stokes, linear_to_srgb, read_hdr, to_hwc, write_hdr, write_png
-from polargs_plugin.data.views import ViewCollector, read_mask
+from polargs_plugin.data.views import ViewCollector, read_mask, warn_unused_files
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.types import View
 
@@ -72,6 +72,8 @@ def read_pandora(folder: str | os.PathLike, normalize: bool = True, check_scale:
     names = sorted(p.name[: -len("_s0.hdr")] for p in stokes_dir.glob("*_s0.hdr"))
     if not names:
         raise PolarInputError(stokes_dir, "no *_s0.hdr files")
+    components = [*stokes_dir.glob("*_s0p1.hdr"), *stokes_dir.glob("*_s0p2.hdr")]
+    warn_unused_files(folder, components, set(names), lambda path: path.name.rsplit("_", 1)[0], "no _s0.hdr of that view")
     collector = ViewCollector(folder, check_scale, resolution)
     for name in names:
         paths = [stokes_dir / f"{name}_{s}.hdr" for s in ("s0", "s0p1", "s0p2")]

@@ -38,6 +38,7 @@ from torch import Tensor
 from polargs_plugin.compact import AngleImages, Deferred
 from polargs_plugin.data.imageio_utils import warn_narrow_range
 from polargs_plugin.data.resolution import prepare_view, target_size
+from polargs_plugin.data.views import warn_unused_files
 from polargs_plugin.io import PolarInputError, atomic_path, atomic_write
 from polargs_plugin.optics.stokes import POLARIZER_ANGLES_DEG
 from polargs_plugin.types import View
@@ -463,7 +464,25 @@ def read_scene_folder(folder: str | Path, resolution: int = 1) -> list[View]:
     folder = Path(folder)
     header = _read_header(folder)
     _check_resolution(folder / CAMERAS_FILE, header, resolution)
-    return _read_views(folder, header, resolution)
+    views = _read_views(folder, header, resolution)
+    _warn_unlisted_views(folder, {view.name for view in views})
+    return views
+
+
+#: The per-view folders of a scene folder (each file named after its view; ``polar/`` adds the angle).
+_VIEW_FOLDERS = ("polar", "masks", "normals", "depth", "diffuse", "specular", "highlights", "overexposed")
+
+
+def _view_of_file(path: Path) -> str:
+    """The view a per-view file belongs to: ``polar/<view>_<angle>.png``, else ``<folder>/<view>.<ext>``."""
+    return path.stem.rsplit("_", 1)[0] if path.parent.name == "polar" else path.stem
+
+
+def _warn_unlisted_views(folder: Path, listed: set[str]) -> None:
+    """One warning naming the per-view files of views ``cameras.json`` does not list."""
+    files = [path for sub in _VIEW_FOLDERS if (folder / sub).is_dir() for path in (folder / sub).iterdir()
+             if path.is_file() and not path.name.startswith(".")]
+    warn_unused_files(folder, files, listed, _view_of_file, f"their views are not listed in {CAMERAS_FILE}", stacklevel=4)
 
 
 def _check_resolution(path: Path, header: dict, resolution: int) -> None:

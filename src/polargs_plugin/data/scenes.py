@@ -19,6 +19,7 @@ Scenes (each chosen to be hard for photometric 3D Gaussian Splatting, as targete
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass, field, replace
 from typing import Callable
@@ -47,6 +48,7 @@ __all__ = [
     "evaluate_albedo",
     "FLOOR_TEXTURES",
     "with_floor_texture",
+    "same_arguments_as",
 ]
 
 
@@ -614,3 +616,18 @@ def build_scene(name: str) -> SceneSpec:
     if name not in SCENE_BUILDERS:
         raise ValueError(f"unknown synthetic scene {name!r}; choose one of {', '.join(SCENE_BUILDERS)}")
     return SCENE_BUILDERS[name]()
+
+
+def same_arguments_as(generate_views: Callable) -> Callable[[Callable], Callable]:
+    """Decorator of a whole-scene generator that forwards every argument to its view-at-a-time
+    twin ``generate_views`` (:func:`~polargs_plugin.data.synthetic.generate_scene` of
+    :func:`~polargs_plugin.data.synthetic.generate_scene_views`, the family's pair likewise): each
+    argument is declared once, on ``generate_views``, and ``help()`` and ``inspect.signature`` show
+    it on the decorated function too, with the decorated function's own return annotation."""
+
+    def decorate(generate: Callable) -> Callable:
+        returns = inspect.signature(generate).return_annotation
+        generate.__signature__ = inspect.signature(generate_views).replace(return_annotation=returns)
+        return generate
+
+    return decorate

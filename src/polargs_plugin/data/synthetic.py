@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -46,6 +47,7 @@ from polargs_plugin.data.scenes import (
     build_scene,
     evaluate_albedo,
     intrinsics,
+    same_arguments_as,
     scene_cameras,
     with_floor_texture,
 )
@@ -68,6 +70,7 @@ __all__ = [
     "apply_sensor",
     "generate_scene",
     "generate_scene_views",
+    "assemble_scene",
     "object_submesh",
 ]
 
@@ -432,59 +435,6 @@ def apply_sensor(
     return angles, stokes_from_intensities(angles), overexposed
 
 
-def generate_scene(
-    name: str | SceneSpec,
-    num_views: int = 24,
-    width: int = 128,
-    height: int = 128,
-    seed: int = 0,
-    noise_std: float = 0.005,
-    quantize_bits: int = 8,
-    refractive_index: float = 1.5,
-    *,
-    shadows: bool = True,
-    highlight_threshold: float = 0.1,
-    mask: str = "object",
-    progress: bool = False,
-) -> SyntheticScene:
-    """Render a named procedural scene from ``num_views`` cameras orbiting it.
-
-    Geometry, texture and cameras depend on the scene only; ``seed`` drives the sensor noise
-    (each view draws from its own stream spawned from ``seed``), so equal seeds give identical
-    arrays.
-
-    Args:
-        name: one of :data:`SCENE_NAMES`, or a custom :class:`SceneSpec`.
-        num_views: number of cameras (>= 1), placed by the scene's camera layout (three elevation rings
-            for the bundled scenes).
-        width: image width W (pixels).
-        height: image height H (pixels).
-        seed: noise seed.
-        noise_std: Gaussian noise std per angle image ([0, 1] units).
-        quantize_bits: sensor bit depth, 8 or 16.
-        refractive_index: n for the Fresnel DoLP.
-        shadows: cast shadows from the lights.
-        highlight_threshold: channel-mean specular colour above which a pixel is a highlight.
-        mask: what the views' masks mark, one of :data:`MASK_KINDS`: ``"object"`` (default), the
-            pixels where the object itself is seen, so a floor it stands on is background as in
-            real object datasets; ``"surface"``, every pixel that sees a surface, so the object's
-            outline over the floor lies inside the mask (an occlusion edge no mask marks; see
-            docs/evaluation.md "The mask's edge"). GT depth and normals are 0 outside the mask.
-        progress: show a tqdm progress bar over views.
-
-    Returns:
-        the :class:`SyntheticScene`.
-
-    Example:
-        >>> scene = generate_scene("glossy_plane_sphere", num_views=2, width=32, height=32)
-        >>> scene.views[0].stokes.shape, scene.angle_images[0].shape
-        (torch.Size([3, 3, 32, 32]), torch.Size([4, 3, 32, 32]))
-    """
-    return assemble_scene(generate_scene_views(name, num_views, width, height, seed, noise_std, quantize_bits,
-                                               refractive_index, shadows=shadows, highlight_threshold=highlight_threshold,
-                                               mask=mask, progress=progress))
-
-
 def assemble_scene(parts: Iterable[SyntheticScene]) -> SyntheticScene:
     """One scene of the parts :func:`generate_scene_views` yields (their views in order)."""
     out = None
@@ -511,11 +461,37 @@ def generate_scene_views(
     progress: bool = False,
     floor_texture: str | None = None,
 ) -> Iterator[SyntheticScene]:
-    """:func:`generate_scene` one view at a time: each item is the scene (mesh, meta) holding
-    only the next view, so a writer can store it before the next is rendered. Arguments as
-    :func:`generate_scene`, whose views are these, in order; ``floor_texture``, a key of
-    :data:`~polargs_plugin.data.scenes.FLOOR_TEXTURES`, replaces the floor's texture (None: the
-    scene's own; ValueError for a scene without a floor)."""
+    """Render a named procedural scene from ``num_views`` cameras orbiting it, one view at a time.
+
+    Each item is the scene (mesh, meta) holding only the next view, so a writer can store it
+    before the next is rendered; :func:`generate_scene` assembles them into one scene. Geometry,
+    texture and cameras depend on the scene only; ``seed`` drives the sensor noise (each view
+    draws from its own stream spawned from ``seed``), so equal seeds give identical arrays.
+
+    Args:
+        name: one of :data:`SCENE_NAMES`, or a custom :class:`SceneSpec`.
+        num_views: number of cameras (>= 1), placed by the scene's camera layout (three elevation rings
+            for the bundled scenes).
+        width: image width W (pixels).
+        height: image height H (pixels).
+        seed: noise seed.
+        noise_std: Gaussian noise std per angle image ([0, 1] units).
+        quantize_bits: sensor bit depth, 8 or 16.
+        refractive_index: n for the Fresnel DoLP.
+        shadows: cast shadows from the lights.
+        highlight_threshold: channel-mean specular colour above which a pixel is a highlight.
+        mask: what the views' masks mark, one of :data:`MASK_KINDS`: ``"object"`` (default), the
+            pixels where the object itself is seen, so a floor it stands on is background as in
+            real object datasets; ``"surface"``, every pixel that sees a surface, so the object's
+            outline over the floor lies inside the mask (an occlusion edge no mask marks; see
+            docs/evaluation.md "The mask's edge"). GT depth and normals are 0 outside the mask.
+        progress: show a tqdm progress bar over views.
+        floor_texture: a key of :data:`~polargs_plugin.data.scenes.FLOOR_TEXTURES` that replaces
+            the floor's texture; None: the scene's own (ValueError for a scene without a floor).
+
+    Yields:
+        one :class:`SyntheticScene` per view, in order.
+    """
     if num_views < 1 or width < 1 or height < 1:
         raise ValueError(f"need num_views, width, height >= 1, got {num_views}, {width}, {height}")
     if mask not in MASK_KINDS:
@@ -538,6 +514,22 @@ def generate_scene_views(
         part.visibility = renderer.visibility([cameras[index]], K, width, height)
         part.meta = dict(meta)
         yield part
+
+
+@same_arguments_as(generate_scene_views)
+def generate_scene(*args: Any, **kwargs: Any) -> SyntheticScene:
+    """Render a named procedural scene, all its views at once: the parts
+    :func:`generate_scene_views` yields (arguments exactly as there), assembled.
+
+    Returns:
+        the :class:`SyntheticScene`.
+
+    Example:
+        >>> scene = generate_scene("glossy_plane_sphere", num_views=2, width=32, height=32)
+        >>> scene.views[0].stokes.shape, scene.angle_images[0].shape
+        (torch.Size([3, 3, 32, 32]), torch.Size([4, 3, 32, 32]))
+    """
+    return assemble_scene(generate_scene_views(*args, **kwargs))
 
 
 def _extend(scene: SyntheticScene, part: SyntheticScene) -> SyntheticScene:

@@ -6,12 +6,14 @@
   :data:`SCALE_CHECK_VIEWS` views, and one warning at the end when some normal maps were stored
   in another frame.
 - :func:`read_mask` reads an object mask from an image's first channel.
+- :func:`warn_unused_files` names, in one warning, the files a dataset holds for views its
+  reader does not read (a view left out of the camera file, a Stokes component without its s0).
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,7 +34,11 @@ __all__ = [
     "load_normal_gt",
     "read_mask",
     "read_normal_map",
+    "warn_unused_files",
 ]
+
+#: How many unused files :func:`warn_unused_files` names (the count is always given).
+UNUSED_NAMED = 5
 
 SCALE_CHECK_VIEWS = 3
 """Number of views whose 8-bit picture is compared with the Stokes scale."""
@@ -168,3 +174,26 @@ class ViewCollector:
             warnings.warn(f"{self.folder}: GT normal maps stored in the {'/'.join(sorted(self.frames))} frame; converted "
                           "to the OpenCV camera frame (told from the silhouettes)", stacklevel=3)
         return self.views
+
+
+def warn_unused_files(folder: Path, files: Iterable[Path], used: Collection[str], view_of: Callable[[Path], str],
+                      why: str, stacklevel: int = 3) -> list[Path]:
+    """Warn once about the ``files`` whose view (``view_of(file)``) is not among the ``used``
+    views: data the dataset holds and the training would silently go without. Returns them.
+
+    Args:
+        folder: the dataset folder (the warning names it, and the files relative to it).
+        files: the candidate files (e.g. every angle image and mask of the folder).
+        used: the names of the views the reader reads.
+        view_of: the view a file belongs to.
+        why: why they are not read, for the message (e.g. "not listed in cameras.json").
+        stacklevel: as :func:`warnings.warn`'s, to place the warning at the reader's caller.
+    """
+    unused = sorted(path for path in files if view_of(path) not in used)
+    if unused:
+        views = sorted({view_of(path) for path in unused})
+        named = ", ".join(str(path.relative_to(folder)) for path in unused[:UNUSED_NAMED])
+        more = f" and {len(unused) - UNUSED_NAMED} more" if len(unused) > UNUSED_NAMED else ""
+        warnings.warn(f"{folder}: {len(unused)} file(s) of {len(views)} view(s) not read ({why}): {named}{more}",
+                      stacklevel=stacklevel)
+    return unused

@@ -261,6 +261,26 @@ def _pixel_setup(src, A, x, y):
     return ax, ay, az
 
 
+@nb.njit(**_OPTS)
+def _pixel_context(i, src, A, rays, gray, radius, step, n1, sigma_spatial, sigma_color, depth, active):
+    """What both search kernels need of the flat pixel ``i`` before scoring its hypotheses.
+
+    Returns ``(y, x, vx, vy, vz, ref_w, ref_wc, rv, textured, ax, ay, az, scratch, has_dg, gx, gy,
+    gz)``: the pixel, its ray, its reference window (built per pixel and call rather than stored:
+    2 Q floats a pixel) with its variance and whether that counts as texture, the per-source
+    ``A p~``, a scratch array of one cost per source, and the depth-gradient normal.
+    """
+    w = depth.shape[1]
+    y, x = i // w, i % w
+    vx, vy, vz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
+    ref_w, ref_wc = np.empty(n1 * n1, np.float32), np.empty(n1 * n1, np.float32)
+    rv = _reference_window(gray, y, x, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc)
+    ax, ay, az = _pixel_setup(src, A, x, y)
+    scratch = np.empty(src.shape[0])
+    has_dg, gx, gy, gz = _depth_gradient_normal(depth, rays, active, x, y)
+    return y, x, vx, vy, vz, ref_w, ref_wc, rv, rv >= _MIN_VAR, ax, ay, az, scratch, has_dg, gx, gy, gz
+
+
 @nb.njit(parallel=True, **_OPTS)
 def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k, gray, sigma_spatial,
                 sigma_color, phi, omega, params, active, depth, out_depth, out_normal, out_photo, out_total,
@@ -273,23 +293,15 @@ def init_kernel(idx, cand_d, cand_n, src, A, b, kinv, rays, radius, step, top_k,
     ``best_total`` (inf at first), it keeps the first cheapest of all groups, compared at the
     precision of the costs rather than of the float32 state. Returns the number of evaluations.
     """
-    w = depth.shape[1]
     num_m = cand_d.shape[0]
     num_s = src.shape[0]
     n1 = (2 * radius) // step + 1
     lo, hi = params[4], params[5]
     count = 0
     for j in nb.prange(idx.shape[0]):
-        i = idx[j]
-        y, x = i // w, i % w
-        vx, vy, vz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
-        # the reference window, built per pixel and call rather than stored: 2 Q floats a pixel
-        ref_w, ref_wc = np.empty(n1 * n1, np.float32), np.empty(n1 * n1, np.float32)
-        rv = _reference_window(gray, y, x, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc)
-        textured = rv >= _MIN_VAR
-        ax, ay, az = _pixel_setup(src, A, x, y)
-        scratch = np.empty(num_s)
-        has_dg, gx, gy, gz = _depth_gradient_normal(depth, rays, active, x, y)
+        (y, x, vx, vy, vz, ref_w, ref_wc, rv, textured, ax, ay, az, scratch, has_dg, gx, gy,
+         gz) = _pixel_context(idx[j], src, A, rays, gray, radius, step, n1, sigma_spatial, sigma_color,
+                              depth, active)
         best = best_total[y, x]
         best_m = -1
         best_photo = _MAX_COST
@@ -334,16 +346,9 @@ def half_step_kernel(idx, src, A, b, kinv, rays, radius, step, top_k, gray, sigm
     lo, hi = params[4], params[5]
     count = 0
     for j in nb.prange(idx.shape[0]):
-        i = idx[j]
-        y, x = i // w, i % w
-        vx, vy, vz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
-        # the reference window, built per pixel and call rather than stored: 2 Q floats a pixel
-        ref_w, ref_wc = np.empty(n1 * n1, np.float32), np.empty(n1 * n1, np.float32)
-        rv = _reference_window(gray, y, x, radius, step, sigma_spatial, sigma_color, ref_w, ref_wc)
-        textured = rv >= _MIN_VAR
-        ax, ay, az = _pixel_setup(src, A, x, y)
-        scratch = np.empty(num_s)
-        has_dg, gx, gy, gz = _depth_gradient_normal(depth, rays, active, x, y)
+        (y, x, vx, vy, vz, ref_w, ref_wc, rv, textured, ax, ay, az, scratch, has_dg, gx, gy,
+         gz) = _pixel_context(idx[j], src, A, rays, gray, radius, step, n1, sigma_spatial, sigma_color,
+                              depth, active)
         d0 = np.float64(depth[y, x])
         n0x, n0y, n0z = np.float64(normal[0, y, x]), np.float64(normal[1, y, x]), np.float64(normal[2, y, x])
         best_photo = np.float64(photo[y, x])

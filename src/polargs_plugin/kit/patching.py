@@ -581,14 +581,19 @@ def unified_diff(old: str, new: str, path: Path) -> str:
     )
 
 
-def resolve_target(target: str | os.PathLike[str], filename: str = "train.py") -> Path:
-    """A checkout folder -> its ``train.py``; a file is taken as is."""
+def resolve_target(target: str | os.PathLike[str], filename: str = "train.py", subfolders: Sequence[str] = ()) -> Path:
+    """A checkout folder -> its ``filename``, found in the folder or in one of its ``subfolders``
+    (gsplat's trainer lives in ``examples/`` of the repository); a file is taken as is."""
     path = Path(target)
-    if path.is_dir():
-        path = path / filename
-    if not path.is_file():
-        raise PatchError(f"{path}: no such file")
-    return path
+    if not path.is_dir():
+        if not path.is_file():
+            raise PatchError(f"{path}: no such file or folder")
+        return path
+    for folder in (path, *(path / sub for sub in subfolders)):
+        if (folder / filename).is_file():
+            return folder / filename
+    places = " or ".join([f"{path}", *(f"{path / sub}{os.sep}" for sub in subfolders)])
+    raise PatchError(f"{path}: no {filename} in {places}; pass the trainer's checkout or the file itself")
 
 
 def is_read_only(path: Path) -> bool:
@@ -690,11 +695,19 @@ def build_parser(description: str, filename: str = "train.py") -> argparse.Argum
     return parser
 
 
-def main(argv: Sequence[str] | None, anchors: Sequence[Anchor], description: str = "", filename: str = "train.py") -> int:
-    """Entry point of a patch script: parse ``argv``, patch / dry-run / revert, return the exit status."""
+def main(argv: Sequence[str] | None, anchors: Sequence[Anchor], description: str = "", filename: str = "train.py",
+         subfolders: Sequence[str] = ()) -> int:
+    """Entry point of a patch script: parse ``argv``, patch / dry-run / revert, return the exit status
+    (``subfolders`` of a checkout folder are searched for the file too, as :func:`resolve_target`)."""
     args = build_parser(description, filename).parse_args(argv)
     try:
-        path = resolve_target(args.checkout, args.file)
+        path = resolve_target(args.checkout, args.file, subfolders)
+        if path.is_symlink():
+            # patch the file the link points to, through a rename beside it: the link stays a link
+            link, path = path, path.resolve()
+            if not path.is_file():
+                raise PatchError(f"{link}: a link to {path}, which is not a file")
+            print(f"{link}: a link; acting on its target {path} (the link is kept)", file=sys.stderr)
         if args.revert:
             report = revert_file(path, dry_run=args.dry_run, force=args.force)
         else:

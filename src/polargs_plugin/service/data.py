@@ -13,10 +13,12 @@ if TYPE_CHECKING:
     from polargs_plugin.types import View
 
 __all__ = ["ReaderOptions", "Dataset", "load_dataset", "dataset_location", "options_from_record", "SYNTHETIC_PREFIX",
-           "PATTERNS"]
+           "PATTERNS", "DATASET_NOT_FOUND"]
 
 #: ``synthetic:NAME`` names a bundled scene, rendered on the fly (24 views, 128x128).
 SYNTHETIC_PREFIX = "synthetic:"
+#: The problem :func:`load_dataset` reports for a path that does not exist.
+DATASET_NOT_FOUND = "dataset not found"
 #: Raw-mosaic patterns: mono (IMX250MZR), rgb (IMX250MYR), auto (told from the frames).
 PATTERNS: tuple[str, ...] = ("auto", "mono", "rgb")
 # How the command line spells each option, for messages about options that do not apply.
@@ -139,7 +141,7 @@ def load_dataset(spec: str, options: ReaderOptions | None = None) -> Dataset:
         return _load_synthetic(spec, options)
     path = Path(spec)
     if not path.exists():
-        raise PolarInputError(path, "dataset not found")
+        raise PolarInputError(path, DATASET_NOT_FOUND)
     from polargs_plugin.data.registry import FORMATS, detect_format, load_views, reader_options
 
     if options.fmt != "auto" and options.fmt not in FORMATS:

@@ -16,17 +16,20 @@ import os
 import socket
 import subprocess
 import sys
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from statistics import mean
 from typing import Callable, Sequence
 
 from polargs_plugin.dryrun.trainers import TRAINERS, dense_settings, trainer_arguments
-from polargs_plugin.io import PolarInputError, atomic_write
+from polargs_plugin.io import PolarInputError, atomic_write, write_json
 from polargs_plugin.kit.patching import is_marked, strip_marked
+from polargs_plugin.service.provenance import provenance
+from polargs_plugin.service.runs import SUMMARY_NAME
 from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder
 
-__all__ = ["DryRunRequest", "Check", "DryRunResult", "dry_run", "verdict", "describe", "WARMUP_STEPS"]
+__all__ = ["DryRunRequest", "Check", "DryRunResult", "dry_run", "verdict", "describe", "write_summary", "WARMUP_STEPS",
+           "SUMMARY_FORMAT"]
 
 #: Steps left out of the step-time ratio (numba compilation, first allocations).
 WARMUP_STEPS = 10
@@ -47,6 +50,8 @@ class DryRunRequest:
         views, width, height: its size.
         compare: also run the unpatched copy (for the step-time ratio).
         timeout: seconds each run may take.
+        command: the command line, recorded in the work folder's ``summary.json`` (None: this
+            process's).
     """
 
     checkout: Path
@@ -61,6 +66,7 @@ class DryRunRequest:
     height: int = 48
     compare: bool = True
     timeout: float = 1800.0
+    command: str | None = None
 
 
 @dataclass
@@ -110,7 +116,18 @@ def _train_script(checkout: Path, trainer: str) -> tuple[Path, str]:
     if not any(is_marked(line) for line in text.splitlines()):
         adapter = spec.adapter
         raise PolarInputError(script, f"is not patched: run `python adapters/{adapter}/patch.py {checkout}` first")
+    _check_compiles(script, text)
     return script, text
+
+
+def _check_compiles(script: Path, text: str) -> None:
+    """Refuse a trainer Python cannot compile, naming its file and line: a run of it would stop
+    at once, and every check after would only repeat that."""
+    try:
+        compile(text, str(script), "exec")
+    except SyntaxError as err:  # IndentationError and TabError are SyntaxErrors too
+        where = f"{script}:{err.lineno}" if err.lineno else str(script)
+        raise PolarInputError(where, f"Python cannot compile it: {type(err).__name__}: {err.msg}") from None
 
 
 def _scene(request: DryRunRequest) -> Path:
@@ -176,7 +193,8 @@ def dry_run(request: DryRunRequest, progress: Callable[[str], None] | None = Non
     check them (module docstring).
 
     Raises:
-        PolarInputError: an unknown trainer, no ``train.py``, an unpatched one, too few iterations.
+        PolarInputError: an unknown trainer, no ``train.py``, an unpatched one or one Python cannot
+            compile (naming its file and line), too few iterations.
     """
     say = progress or (lambda message: None)
     # the runs start in the checkout: relative paths would be read from there
@@ -202,7 +220,29 @@ def dry_run(request: DryRunRequest, progress: Callable[[str], None] | None = Non
         say(f"{label}: {request.iterations} iterations of {script}")
         result.reports[label], result.logs[label] = _run(label, path, request, scene, env, port)
     result.checks = verdict(result.reports, request.iterations)
+    write_summary(request, result)
     return result
+
+
+#: What the work folder's ``summary.json`` holds (:func:`write_summary`).
+SUMMARY_FORMAT = "polargs-dryrun-v1"
+
+
+def write_summary(request: DryRunRequest, result: DryRunResult) -> Path:
+    """``workdir/summary.json``: the request, the verdict, the runs' reports and logs, and the
+    provenance (library versions, commit, command line, machine, threads). Returns its path."""
+    summary = {
+        "format": SUMMARY_FORMAT,
+        "request": {key: str(value) if isinstance(value, Path) else value for key, value in asdict(request).items()},
+        "ok": result.ok,
+        "checks": [asdict(check) for check in result.checks],
+        "reports": result.reports,
+        "logs": {label: str(path) for label, path in result.logs.items()},
+        "provenance": provenance(request.command),
+    }
+    path = request.workdir / SUMMARY_NAME
+    write_json(path, summary)
+    return path
 
 
 def _mean_step(report: dict) -> float | None:

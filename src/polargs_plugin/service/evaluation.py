@@ -37,6 +37,8 @@ class EvalSettings:
             ``all``; None (default): ``object`` when cameras are known, else ``all``.
         cull: the old spelling of ``region="object"``.
         views: a dataset whose cameras (and masks) define the region for a mesh file.
+        data: a run's dataset in a new place (moved since training; checked against the run's
+            fingerprint), instead of the one its ``summary.json`` names.
         num_samples: points sampled per mesh (default 1e6).
         seed: sampling seed (default 0).
         max_dist: distances above this are dropped (DTU); None: 5 % of the GT box diagonal.
@@ -50,6 +52,7 @@ class EvalSettings:
     region: Literal["all", "masks", "object"] | None = None
     cull: bool = False
     views: str | None = None
+    data: str | None = None
     num_samples: int = 1_000_000
     seed: int = 0
     max_dist: float | None = None
@@ -118,6 +121,8 @@ def _check_request(target: Path, settings: EvalSettings, is_run: bool) -> str:
         raise PolarInputError(target, "nothing to do; give --gt GT_MESH and/or --normals")
     if settings.normals and not is_run:
         raise PolarInputError(target, "--normals needs a run folder (a model to render), not a mesh file")
+    if settings.data is not None and not is_run:
+        raise PolarInputError(target, "--data names a run's moved dataset; for a mesh file give the cameras with --views")
     region = settings.resolved_region(is_run or settings.views is not None)
     if region != "all" and not is_run and settings.views is None:
         raise PolarInputError(target, f"--region {region} needs cameras: a run folder, or --views DATASET for a mesh file")
@@ -185,7 +190,7 @@ def evaluate(target: Path, settings: EvalSettings, run: Run | None = None, progr
     region = _check_request(target, settings, is_run)
     views: Sequence[View] | None = None
     if is_run and (settings.normals or (settings.gt is not None and region != "all")):
-        run = run or load_run(target)
+        run = run or load_run(target, settings.data)
         views = run.views
     if settings.views is not None:
         views = load_dataset(str(settings.views)).views

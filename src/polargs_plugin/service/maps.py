@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from polargs_plugin.io import check_writable
+from polargs_plugin.io import FolderLock, check_writable, remove_stale_temporaries_in
 
 if TYPE_CHECKING:
     from polargs_plugin.config import PolarConfig
@@ -19,6 +19,8 @@ __all__ = ["MAPS_NAME", "PREPROCESSED_NAME", "MapsCache", "Preprocessed", "maps_
 MAPS_NAME = "maps"
 #: ``polargs preprocess DATASET`` writes ``DATASET/preprocessed/maps``.
 PREPROCESSED_NAME = "preprocessed"
+#: The lock ``polargs preprocess`` holds in its output folder while it writes.
+PREPROCESS_LOCK_NAME = "preprocess.lock"
 
 
 @dataclass(frozen=True)
@@ -99,22 +101,43 @@ class Preprocessed:
     Attributes:
         cache: the cache folder the maps live in.
         maps: one :class:`~polargs_plugin.types.PolarMaps` per view, in order.
-        reused: views whose maps were already cached.
+        reused: views whose maps were read from the cache.
         pictures: the folder of the pictures written, or None.
+        rebuilt: ``{view name: why}`` for cache entries that could not be used and were computed
+            again.
+        notes: one-line notes for the user (temporary files a killed run left, removed; a stale
+            lock taken over).
     """
 
     cache: Path
     maps: list[Any]
     reused: int
     pictures: Path | None
+    rebuilt: dict[str, str] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def describe(self) -> str:
+        """One line for the user: what was reused, computed and rebuilt, and why."""
+        total = len(self.maps)
+        line = f"maps: reused {self.reused} of {total} views from {self.cache}" if self.reused else f"maps: computed {total} views"
+        if self.rebuilt:
+            reasons = "; ".join(f"{name}: {why}" for name, why in list(self.rebuilt.items())[:3])
+            more = f"; {len(self.rebuilt) - 3} more" if len(self.rebuilt) > 3 else ""
+            line += f"; rebuilt {len(self.rebuilt)} whose cache entry could not be used ({reasons}{more})"
+        return line
 
 
-def preprocess(views: Sequence["View"], config: "PolarConfig", out: Path, pictures: bool = True) -> Preprocessed:
+def preprocess(views: Sequence["View"], config: "PolarConfig", out: Path, pictures: bool = True,
+               command: str = "") -> Preprocessed:
     """Compute (or reuse) the PC maps of ``views`` into ``out/maps`` and draw them into
     ``out/pictures`` (``polargs preprocess``); Dense is not prepared.
 
+    ``out`` is locked meanwhile (:data:`PREPROCESS_LOCK_NAME`, ``command`` recorded in it), so
+    that the temporary files a killed earlier run left in the cache can be removed first.
+
     Raises:
         PolarInputError: ``out`` is not writable, or the hooks refuse a view (naming it).
+        FolderLockedError: another ``polargs preprocess`` writes ``out`` now.
     """
     from dataclasses import replace
 
@@ -124,10 +147,15 @@ def preprocess(views: Sequence["View"], config: "PolarConfig", out: Path, pictur
     cache = out / MAPS_NAME
     config = replace(config, densify=replace(config.densify, enabled=False), cache_dir=str(cache))
     check_writable(out)
-    reused = sum(path.is_file() for path in maps_entries(views, config, cache).values())
-    maps = PolarHooks(config).preprocess(list(views))
-    folder = out / "pictures" if pictures else None
-    if folder is not None:
-        for view, view_maps in zip(views, maps):
-            save_map_pictures(view_maps, folder, view.name)
-    return Preprocessed(cache, maps, reused, folder)
+    with FolderLock(out / PREPROCESS_LOCK_NAME, command=command) as lock:
+        notes = [f"note: {lock.note}"] if lock.note else []
+        removed = remove_stale_temporaries_in(cache, ".pt")
+        if removed:
+            notes.append(f"note: {cache}: removed {len(removed)} temporary file(s) a killed run left")
+        hooks = PolarHooks(config)
+        maps = hooks.preprocess(list(views))
+        folder = out / "pictures" if pictures else None
+        if folder is not None:
+            for view, view_maps in zip(views, maps):
+                save_map_pictures(view_maps, folder, view.name)
+    return Preprocessed(cache, maps, hooks.maps.reused, folder, dict(hooks.maps.rebuilt), notes)

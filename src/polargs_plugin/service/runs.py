@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.io import PolarInputError
-from polargs_plugin.service.data import Dataset, load_dataset, options_from_record
+from polargs_plugin.service.data import DATASET_NOT_FOUND, Dataset, load_dataset, options_from_record
 from polargs_plugin.service.fingerprints import compare_fingerprints, fingerprint, read_fingerprint
 
 if TYPE_CHECKING:
@@ -65,16 +65,18 @@ def read_summary(run_dir: Path) -> dict[str, Any]:
     return summary
 
 
-def load_run(run_dir: str | Path) -> Run:
+def load_run(run_dir: str | Path, data: str | Path | None = None) -> Run:
     """The model and training views of a run folder.
 
-    The views come from the dataset named in ``summary.json``, read with the reader options the
-    run recorded (re-rendered for ``synthetic:NAME``); the Gaussians from ``checkpoint.pt``,
-    whose view names must match the dataset's, and the cameras and images those of the run's
-    ``fingerprint.json`` (when it has one).
+    The views come from the dataset named in ``summary.json`` (or ``data``, the same dataset
+    moved since), read with the reader options the run recorded (re-rendered for
+    ``synthetic:NAME``); the Gaussians from ``checkpoint.pt``, whose view names must match the
+    dataset's, and the cameras and images those of the run's ``fingerprint.json`` (when it has
+    one), so a ``data`` that is not the run's dataset is refused.
 
     Raises:
-        PolarInputError: naming the file: a missing or unreadable summary or checkpoint, or a
+        PolarInputError: naming the file: a missing or unreadable summary or checkpoint, a dataset
+            that is no longer where the run recorded it (the message names ``--data``), or a
             dataset whose views are not the ones the run was trained on (other names, or other
             cameras or images under the same names).
     """
@@ -91,12 +93,19 @@ def load_run(run_dir: str | Path) -> Run:
         spec, options = str(summary["dataset"]), options_from_record(summary.get("reader") or {})
     except (ValueError, KeyError, TypeError, AttributeError) as err:
         raise PolarInputError(summary_path, f"no dataset entry ({type(err).__name__}: {err})") from err
-    data = read_checkpoint(checkpoint_path)
-    dataset = load_dataset(spec, options)
-    if [v.name for v in dataset.views] != data["view_names"]:
+    spec = spec if data is None else str(data)
+    checkpoint = read_checkpoint(checkpoint_path)
+    try:
+        dataset = load_dataset(spec, options)
+    except PolarInputError as err:
+        if data is not None or err.problem != DATASET_NOT_FOUND:
+            raise
+        raise PolarInputError(err.path, f"{DATASET_NOT_FOUND} (the one {summary_path} names); if it moved, give its "
+                              "new place with --data NEW_PATH") from None
+    if [v.name for v in dataset.views] != checkpoint["view_names"]:
         raise PolarInputError(checkpoint_path, f"was trained on other views than those of {spec}")
     _check_same_data(run_dir / FINGERPRINT_NAME, spec, dataset)
-    return Run(run_dir, GaussianModel.from_checkpoint(data["model"]), dataset, summary)
+    return Run(run_dir, GaussianModel.from_checkpoint(checkpoint["model"]), dataset, summary)
 
 
 def _check_same_data(path: Path, spec: str, dataset: Dataset) -> None:

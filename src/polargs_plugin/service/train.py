@@ -26,6 +26,7 @@ from polargs_plugin.service.data import Dataset, ReaderOptions, dataset_location
 from polargs_plugin.service.estimates import RunEstimate, estimate_memory, estimate_time, peak_memory
 from polargs_plugin.service.fingerprints import compare_fingerprints, fingerprint, read_fingerprint
 from polargs_plugin.service.maps import MAPS_NAME, prepare_maps_cache
+from polargs_plugin.service.provenance import provenance
 from polargs_plugin.service.runs import CHECKPOINT_NAME, FINGERPRINT_NAME, LOCK_NAME, SUMMARY_NAME
 
 if TYPE_CHECKING:
@@ -61,7 +62,7 @@ class TrainRequest:
         resume: continue ``out/checkpoint.pt`` (on the same data: checked).
         checkpoint_every: iterations between periodic checkpoints; None: every 10 % of the run;
             0: only at the end.
-        command: the command line, recorded in the folder's lock.
+        command: the command line, recorded in the folder's lock and the summary's ``provenance``.
         labels: how the settings were chosen (``schedule``, ``preset``, ``switches``,
             ``config_file``), recorded in ``summary.json``.
         memory_check: refuse to start when the estimated peak memory is beyond reach
@@ -88,7 +89,9 @@ class TrainResult:
     Attributes:
         run_dir: the run folder.
         summary: what ``summary.json`` holds: settings, the final figures (``iterations``,
-            ``num_gaussians``, ``psnr``, ``loss``, ``seconds``) and the full configs.
+            ``num_gaussians``, ``psnr``, ``loss``, ``seconds``), the full configs and the
+            ``provenance`` (:func:`polargs_plugin.service.provenance.provenance`: library versions,
+            commit, command line, machine, threads).
         dataset: the data trained on.
     """
 
@@ -344,6 +347,10 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
     start = time.perf_counter()
     figures = trainer.train(checkpoint=checkpoint, checkpoint_every=every)
     progress.stage = "after training"
+    rebuilt = trainer.hooks.maps.rebuilt if trainer.hooks is not None else {}
+    if rebuilt:  # the maps line above counted the cache's files before they were read
+        notify(f"maps: rebuilt {len(rebuilt)} of the cached views, their entries could not be used ("
+               + "; ".join(f"{name}: {why}" for name, why in list(rebuilt.items())[:3]) + ")")
     return figures, every, start
 
 
@@ -374,6 +381,7 @@ def _summary(request: TrainRequest, dataset: Dataset, figures: dict[str, Any], e
         **figures,
         "config": request.train.to_dict(),
         "polar_config": None if polar is None else polar.to_dict(),
+        "provenance": provenance(request.command),
     }
 
 

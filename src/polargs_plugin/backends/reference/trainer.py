@@ -33,7 +33,7 @@ import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -51,7 +51,7 @@ from polargs_plugin.backends.reference.binning import DEFAULT_TILE_SIZE
 from polargs_plugin.backends.reference.projection import DEFAULT_EPS2D
 from polargs_plugin.backends.reference.rasterizer import Backend, CompositeOrder
 from polargs_plugin.backends.reference.strategy import DensityConfig, DensityControl
-from polargs_plugin.config import CPU_FACTOR, CheckedConfig, above, at_least, satisfies, within
+from polargs_plugin.config import CPU_FACTOR, VANILLA_SSIM_WEIGHT, CheckedConfig, above, at_least, satisfies, within
 from polargs_plugin.io import PolarInputError, atomic_torch_save, torch_error_line
 from polargs_plugin.losses import photometric_loss
 from polargs_plugin.threads import ThreadPolicy
@@ -103,9 +103,6 @@ class TrainConfig(CheckedConfig):
             ``schedule_scale``); >= 1. Default and vanilla 1000.
         seed: seed of the torch, numpy and python generators and of the view order (any
             integer). Default 0.
-        ssim_weight: share of D-SSIM in the colour loss ``(1 - w) L1 + w D-SSIM``; must equal
-            the hooks' ``losses.ssim_weight`` (refused otherwise); in [0, 1]. Default and
-            vanilla 0.2.
         background: RGB colour, in [0, 1], the renders are composited on and that replaces the
             training colour outside a view's mask (with ``use_masks``). Default black (vanilla's
             default).
@@ -149,12 +146,16 @@ class TrainConfig(CheckedConfig):
             figure leaves the device; >= 1. Default 10.
     """
 
+    RETIRED: ClassVar[dict[str, str]] = {
+        "ssim_weight": "the colour loss's SSIM share is PolarConfig's losses.ssim_weight (in a settings file: "
+                       "\"polar\": {\"losses\": {\"ssim_weight\": ...}}); without the hooks it is vanilla 3DGS's 0.2",
+    }
+
     iterations: int = field(default=30_000, metadata=at_least(1))
     schedule_scale: float = field(default=1.0, metadata=above(0))
     sh_degree: int = field(default=3, metadata=within(0, 3))
     sh_increase_every: int = field(default=1000, metadata=at_least(1))
     seed: int = 0
-    ssim_weight: float = field(default=0.2, metadata=within(0, 1))
     background: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=within(0, 1))
     use_masks: bool = True
     mask_edge_band: int = field(default=0, metadata=at_least(0))
@@ -240,7 +241,6 @@ class Trainer:
         for view in views:
             validate_view(view, "Trainer")
         self.views = [v.to(self.device) for v in views]
-        _check_ssim_weight(cfg, hooks)
         self.hooks = hooks
         self.extent = scene_extent(self.views)
         self.background = torch.tensor(cfg.background, dtype=torch.float32, device=self.device)
@@ -314,8 +314,9 @@ class Trainer:
 
     def base_loss(self, image: Tensor, target: Tensor) -> Tensor:
         """``(1 - w) L1 + w (1 - SSIM)`` over the whole image (vanilla 3DGS), as
-        :func:`polargs_plugin.losses.photometric_loss`, so PolarHooks' replacement cancels it exactly."""
-        return photometric_loss(image, target, ssim_weight=self.config.ssim_weight)
+        :func:`polargs_plugin.losses.photometric_loss`, with ``w`` the hooks' ``losses.ssim_weight``
+        (:func:`ssim_weight_of`), so PolarHooks' replacement cancels it exactly."""
+        return photometric_loss(image, target, ssim_weight=ssim_weight_of(self.hooks))
 
     # --------------------------------------------------------------------- training
     def step(self) -> "StepLogs":
@@ -603,17 +604,12 @@ def _check_channels(view: View) -> None:
         raise PolarInputError(view.source or view.name, f"expected 1 or 3 colour channels, got {view.channels}")
 
 
-def _check_ssim_weight(config: TrainConfig, hooks: TrainingHooks | None) -> None:
-    """PolarHooks' reflective replacement cancels the trainer's colour loss only if both use the
-    same SSIM weight: refuse a mismatch instead of training with a silently wrong L_c."""
+def ssim_weight_of(hooks: TrainingHooks | None) -> float:
+    """The SSIM share of the trainer's colour loss: the PolarHooks' ``losses.ssim_weight`` (the
+    loss their reflective replacement cancels), vanilla 3DGS's without them."""
     from polargs_plugin.hooks import PolarHooks
 
-    if isinstance(hooks, PolarHooks) and hooks.config.losses.ssim_weight != config.ssim_weight:
-        raise ValueError(
-            f"TrainConfig.ssim_weight = {config.ssim_weight} but the hooks' PolarConfig.losses.ssim_weight = "
-            f"{hooks.config.losses.ssim_weight}: the PC loss replaces the trainer's colour loss on reflective "
-            "pixels only if both are equal; set one to the other"
-        )
+    return hooks.config.losses.ssim_weight if isinstance(hooks, PolarHooks) else VANILLA_SSIM_WEIGHT
 
 
 def _psnr(mse: float) -> float:
