@@ -103,6 +103,7 @@ def a_damaged_maps_cache(tmp_path: Path, capsys, data: Path) -> None:
     assert line.startswith(f"maps: reused 1 of 3 views from {data / 'preprocessed' / 'maps'}; rebuilt 2 whose cache "
                            "entry could not be used (view_000: unreadable (") and "view_002: unreadable (" in line
     assert sum("rebuilt: unreadable" in str(w.message) for w in caught) == 2
+    assert not any("weights_only" in text for text in (line, *(str(w.message) for w in caught)))  # never advised
     assert "maps: reused 3 of 3 views" in _preprocess(data, capsys)  # rewritten whole
 
 

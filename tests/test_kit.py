@@ -290,23 +290,6 @@ def test_polar_hooks_meet_the_protocol_and_default_to_the_synthetic_preset() -> 
     assert hooks.config == PolarConfig.synthetic()
 
 
-def test_the_trainer_takes_the_ssim_share_of_its_colour_loss_from_the_hooks() -> None:
-    """One home for the SSIM share: the reference trainer's colour loss uses the hooks'
-    ``losses.ssim_weight`` (the loss their replacement cancels), vanilla 3DGS's 0.2 without them."""
-    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
-    from polargs_plugin.losses import photometric_loss
-
-    view = View("v", torch.tensor([[10.0, 0, 4], [0, 10.0, 4], [0, 0, 1]], dtype=F64),
-                _w2c([0, 0, 0], [0, 0, 3]), torch.rand(3, 3, 8, 8))
-    config = PolarConfig.synthetic()
-    config.losses.ssim_weight = 0.3
-    pred, target = torch.rand(3, 8, 8), torch.rand(3, 8, 8)
-    hooked = Trainer([view], TrainConfig.cpu(progress=False, num_init_points=50), hooks=PolarHooks(config))
-    plain = Trainer([view], TrainConfig.cpu(progress=False, num_init_points=50))
-    assert torch.equal(hooked.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.3))
-    assert torch.equal(plain.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.2))
-
-
 def test_config_from_env_gates_native_terms_before_the_json_file(tmp_path) -> None:
     from polargs_plugin.service.configs import config_from_environment as config_from_env
 

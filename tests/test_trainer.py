@@ -413,3 +413,26 @@ def test_cpu_preset_runs_the_paper_polargs_schedule_at_half_its_counts():
     assert polar_schedule_factor(0.002) == pytest.approx(0.006) and polar_schedule_factor(0.5) == 1.0
     with pytest.raises(ValueError):
         polar_schedule_factor(0)
+
+
+def test_the_trainer_takes_the_ssim_share_of_its_colour_loss_from_the_hooks() -> None:
+    """One home for the SSIM share: the reference trainer's colour loss uses the hooks'
+    ``losses.ssim_weight`` (the loss their replacement cancels), vanilla 3DGS's 0.2 without them."""
+    from polargs_plugin.backends.reference.trainer import TrainConfig, Trainer
+    from polargs_plugin.losses import photometric_loss
+
+    from polargs_plugin.config import PolarConfig
+    from polargs_plugin.hooks import PolarHooks
+    from polargs_plugin.types import View
+
+    world_to_camera = torch.eye(4, dtype=torch.float64)
+    world_to_camera[2, 3] = 3.0
+    view = View("v", torch.tensor([[10.0, 0, 4], [0, 10.0, 4], [0, 0, 1]], dtype=torch.float64), world_to_camera,
+                torch.rand(3, 3, 8, 8))
+    config = PolarConfig.synthetic()
+    config.losses.ssim_weight = 0.3
+    pred, target = torch.rand(3, 8, 8), torch.rand(3, 8, 8)
+    hooked = Trainer([view], TrainConfig.cpu(progress=False, num_init_points=50), hooks=PolarHooks(config))
+    plain = Trainer([view], TrainConfig.cpu(progress=False, num_init_points=50))
+    assert torch.equal(hooked.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.3))
+    assert torch.equal(plain.base_loss(pred, target), photometric_loss(pred, target, ssim_weight=0.2))

@@ -235,8 +235,8 @@ class MapsStore(Mapping[str, PolarMaps]):
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
         except (OSError, RuntimeError, EOFError, KeyError, TypeError, pickle.UnpicklingError) as err:
-            first = (str(err).strip().splitlines() or [""])[0][:120]
-            return None, f"unreadable ({type(err).__name__}{': ' + first if first else ''}; cut short or overwritten?)"
+            # the error's type only: torch's own text advises loading untrusted files unsafely
+            return None, f"unreadable ({type(err).__name__}; cut short or overwritten?)"
         problem = _entry_problem(data, view.height, view.width)
         return (data, None) if problem is None else (None, problem)
 
