@@ -57,7 +57,7 @@ def run_pipeline(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     """Train, mesh, evaluate and write the report data of ``cell`` into ``tmp``; its summary."""
     import torch
 
-    from polargs_plugin.service.data import ReaderOptions, load_dataset
+    from polargs_plugin.service.data import DATASET_NOT_FOUND, ReaderOptions, load_dataset
 
     started = now()
     if cell.threads > 0:
@@ -66,7 +66,7 @@ def run_pipeline(cell: Cell, tmp: Path, report: Progress) -> dict[str, Any]:
     report("scene", 0, 1)
     folder = ensure_scene(cell.scene)
     if not folder.exists():
-        raise PolarInputError(folder, "dataset not found")
+        raise PolarInputError(folder, DATASET_NOT_FOUND)
     gt_mesh = gt_mesh_path(cell.scene)
     clock.lap("scene")
     dataset = load_dataset(str(folder), ReaderOptions(**cell.reader))

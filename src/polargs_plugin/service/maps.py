@@ -13,7 +13,8 @@ if TYPE_CHECKING:
     from polargs_plugin.config import PolarConfig
     from polargs_plugin.types import View
 
-__all__ = ["MAPS_NAME", "PREPROCESSED_NAME", "MapsCache", "Preprocessed", "maps_entries", "prepare_maps_cache", "preprocess"]
+__all__ = ["MAPS_NAME", "PREPROCESSED_NAME", "MapsCache", "Preprocessed", "maps_entries", "prepare_maps_cache", "preprocess",
+           "rebuilt_reasons"]
 
 #: A run's maps cache: ``RUN_DIR/maps``.
 MAPS_NAME = "maps"
@@ -121,10 +122,19 @@ class Preprocessed:
         total = len(self.maps)
         line = f"maps: reused {self.reused} of {total} views from {self.cache}" if self.reused else f"maps: computed {total} views"
         if self.rebuilt:
-            reasons = "; ".join(f"{name}: {why}" for name, why in list(self.rebuilt.items())[:3])
-            more = f"; {len(self.rebuilt) - 3} more" if len(self.rebuilt) > 3 else ""
-            line += f"; rebuilt {len(self.rebuilt)} whose cache entry could not be used ({reasons}{more})"
+            line += f"; rebuilt {len(self.rebuilt)} whose cache entry could not be used ({rebuilt_reasons(self.rebuilt)})"
         return line
+
+
+#: How many rebuilt views :func:`rebuilt_reasons` names (the count is always given).
+REBUILT_NAMED = 3
+
+
+def rebuilt_reasons(rebuilt: dict[str, str]) -> str:
+    """``view: why; ...`` for the first :data:`REBUILT_NAMED` views of a
+    :attr:`~polargs_plugin.correction.store.MapsStore.rebuilt`, and how many more."""
+    named = "; ".join(f"{name}: {why}" for name, why in list(rebuilt.items())[:REBUILT_NAMED])
+    return named + (f"; {len(rebuilt) - REBUILT_NAMED} more" if len(rebuilt) > REBUILT_NAMED else "")
 
 
 def preprocess(views: Sequence["View"], config: "PolarConfig", out: Path, pictures: bool = True,

@@ -25,7 +25,7 @@ from polargs_plugin.io import FolderLock, PolarInputError, atomic_write, check_w
 from polargs_plugin.service.data import Dataset, ReaderOptions, dataset_location, load_dataset
 from polargs_plugin.service.estimates import RunEstimate, estimate_memory, estimate_time, peak_memory
 from polargs_plugin.service.fingerprints import compare_fingerprints, fingerprint, read_fingerprint
-from polargs_plugin.service.maps import MAPS_NAME, prepare_maps_cache
+from polargs_plugin.service.maps import MAPS_NAME, prepare_maps_cache, rebuilt_reasons
 from polargs_plugin.service.provenance import provenance
 from polargs_plugin.service.runs import CHECKPOINT_NAME, FINGERPRINT_NAME, LOCK_NAME, SUMMARY_NAME
 
@@ -349,8 +349,8 @@ def _train(request: TrainRequest, dataset: Dataset, checkpoint: Path, stop: Stop
     progress.stage = "after training"
     rebuilt = trainer.hooks.maps.rebuilt if trainer.hooks is not None else {}
     if rebuilt:  # the maps line above counted the cache's files before they were read
-        notify(f"maps: rebuilt {len(rebuilt)} of the cached views, their entries could not be used ("
-               + "; ".join(f"{name}: {why}" for name, why in list(rebuilt.items())[:3]) + ")")
+        notify(f"maps: rebuilt {len(rebuilt)} of the cached views, their entries could not be used "
+               f"({rebuilt_reasons(rebuilt)})")
     return figures, every, start
 
 
