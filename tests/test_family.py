@@ -11,6 +11,9 @@ import torch
 
 from polargs_plugin.data.family import (
     LAYOUTS,
+    LIGHTINGS,
+    LIT_LAYOUTS,
+    LIT_SEED_START,
     SPARSE_VIEWS,
     TEST_SEED_START,
     family_name,
@@ -34,6 +37,9 @@ def test_names_and_the_protocols_seed_split():
     assert parse_family("family:17") == 17 and parse_family("family-10003") == 10003
     assert parse_family("family:x") is None and parse_family("torus_knot") is None
     assert not is_test_seed(TEST_SEED_START - 1) and is_test_seed(TEST_SEED_START)
+    # The second block: development from LIT_SEED_START, test 10000 seeds later.
+    assert is_test_seed(LIT_SEED_START - 1) and not is_test_seed(LIT_SEED_START)
+    assert not is_test_seed(LIT_SEED_START + TEST_SEED_START - 1) and is_test_seed(LIT_SEED_START + TEST_SEED_START)
     with pytest.raises(ValueError, match="seeds are >= 0"):
         family_settings(-1)
 
@@ -213,3 +219,48 @@ def test_the_ablation_spells_a_family_scene_family_colon_seed(tmp_path):
     assert (smaller.views, smaller.width) == (6, 32) and smaller.path != spec.path
     with pytest.raises(ValueError, match="family:SEED"):
         parse_scene("family:x", tmp_path)
+
+
+LIT_DEV_SEEDS = range(LIT_SEED_START, LIT_SEED_START + 40)
+
+
+def test_second_block_seeds_draw_their_lighting_and_the_stand_layout():
+    lightings, layouts = set(), set()
+    for seed in LIT_DEV_SEEDS:
+        settings = family_settings(seed)
+        layouts.add(settings.layout)
+        assert settings.layout in LIT_LAYOUTS
+        if settings.layout == "stand":
+            assert settings.floor and settings.elevations_deg == (-15.0, 60.0)
+    for seed in LIT_DEV_SEEDS[:16]:
+        drawn = family_scene(seed)
+        lightings.add(drawn.lighting)
+        spec = drawn.spec
+        assert (spec.environment is not None) == (drawn.lighting != "lights")
+        assert (len(spec.lights) > 0) == (drawn.lighting != "environment")
+        assert drawn.describe()["lighting"] == drawn.lighting
+        if spec.environment is not None:
+            assert 1 <= len(spec.environment.softboxes) <= 3
+            for material in spec.materials[:1]:  # the body: glossy under surroundings
+                assert material.specular >= 0.5
+    assert lightings == set(LIGHTINGS) and layouts == set(LIT_LAYOUTS)
+    # The first block is lit by lights alone, as it always was.
+    assert all(family_scene(seed).lighting == "lights" and family_scene(seed).spec.environment is None for seed in range(3))
+
+
+def test_the_stand_raises_the_object_on_a_thin_rod_whose_underside_few_views_see():
+    seed = next(s for s in LIT_DEV_SEEDS if family_settings(s).layout == "stand")
+    spec = family_scene(seed).spec
+    on_object = spec.object_mask()
+    object_z = spec.vertices[np.unique(spec.triangles[on_object]), 2]
+    support = spec.triangles[~on_object]
+    floor_z = spec.vertices[np.unique(support), 2].min()
+    assert object_z.min() - floor_z == pytest.approx(0.35 + 1e-3, abs=1e-6)
+    rod = [m for m in spec.materials if m.name == "stand"]
+    assert len(rod) == 1
+    rod_index = spec.materials.index(rod[0])
+    rod_vertices = spec.vertices[np.unique(spec.triangles[spec.triangle_material == rod_index])]
+    # A vertical rod of radius 0.035 from the floor up into the object's lowest point.
+    radius = np.linalg.norm(rod_vertices[:, :2] - rod_vertices[:, :2].mean(axis=0), axis=1)
+    assert np.allclose(radius, 0.035, atol=1e-9)
+    assert rod_vertices[:, 2].min() == pytest.approx(floor_z + 1e-3, abs=1e-6) and rod_vertices[:, 2].max() > object_z.min()

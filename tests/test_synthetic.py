@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from polargs_plugin.data.scenes import (
     look_at,
     orbit_cameras,
 )
+from polargs_plugin.data.environment import Environment, Softbox
 from polargs_plugin.data.synthetic import SCENE_NAMES, SceneRenderer, apply_sensor, generate_scene
 
 N_IOR = 1.5
@@ -190,7 +192,7 @@ def test_checker_on_a_plane_at_a_cell_boundary_has_one_parity_per_cell(camera):
 
 
 def test_speckle_value_noise_is_its_lattice_values_at_lattice_points_and_their_mean_halfway():
-    from polargs_plugin.data.scenes import _lattice_values, _value_noise
+    from polargs_plugin.data.textures import _lattice_values, _value_noise
 
     rng = np.random.default_rng(4)
     cells = rng.integers(-50, 50, size=(200, 3))
@@ -205,7 +207,7 @@ def test_speckle_value_noise_is_its_lattice_values_at_lattice_points_and_their_m
 
 
 def test_speckle_texture_is_continuous_and_varies_at_its_scale():
-    from polargs_plugin.data.scenes import _pattern
+    from polargs_plugin.data.textures import pattern_at as _pattern
 
     rng = np.random.default_rng(5)
     points = rng.uniform(-1, 1, (5000, 3))
@@ -248,11 +250,15 @@ def test_floor_texture_replaces_the_floor_material_only():
 # --- polarization -------------------------------------------------------------------------------
 
 
-def _sphere_render(material, lights, ambient=0.3):
-    spec = sphere_spec(material, lights, ambient)
-    K = intrinsics(SIZE, SIZE, 40.0)
+def _sphere_camera() -> tuple[np.ndarray, np.ndarray]:
+    """Intrinsics and pose of the sphere tests' camera."""
     # Aim beside the sphere: off the optical axis, PPA and orthographic azimuths differ.
-    w2c = look_at(np.array([1.6, -1.0, 0.6]), np.array([0.25, 0.3, 0.2]))
+    return intrinsics(SIZE, SIZE, 40.0), look_at(np.array([1.6, -1.0, 0.6]), np.array([0.25, 0.3, 0.2]))
+
+
+def _sphere_render(material, lights, ambient=0.3, environment=None):
+    spec = replace(sphere_spec(material, lights, ambient), environment=environment)
+    K, w2c = _sphere_camera()
     clean = SceneRenderer(spec, refractive_index=N_IOR).render(K, w2c, SIZE, SIZE)
     origin, dirs = pixel_grid_rays(K, w2c, SIZE, SIZE)
     t = ray_sphere(origin, dirs, (0, 0, 0), 0.5)
@@ -291,6 +297,126 @@ def test_specular_sphere_aolp_tangential_and_dolp_fresnel():
     # rho_s is steep (up to ~3 per radian), so the tessellation's ~1e-3 rad normal error shows.
     assert np.abs(dolp - rho_s)[sel].max() < 5e-3 and np.median(np.abs(dolp - rho_s)[sel]) < 1e-3
     assert wrapped_diff(aolp, radial + math.pi / 2)[sel].max() < 1e-3
+
+
+# --- environment lighting --------------------------------------------------------------------
+
+CONSTANT_SKY = (0.3, 0.45, 0.6)
+
+
+def constant_environment(level=CONSTANT_SKY, softboxes=()) -> Environment:
+    """Surroundings of one radiance in every direction (no texture), plus ``softboxes``."""
+    return Environment(zenith=level, horizon=level, ground=level, texture_amplitude=0.0, softboxes=softboxes,
+                       samples=512)
+
+
+def fresnel_mean(theta: np.ndarray, n: float = N_IOR) -> np.ndarray:
+    """(R_s + R_p) / 2 from the amplitude coefficients (independent of the library's formulas)."""
+    cos_i = np.cos(theta)
+    cos_t = np.sqrt(1 - np.sin(theta) ** 2 / n**2)
+    r_s = ((cos_i - n * cos_t) / (cos_i + n * cos_t)) ** 2
+    r_p = ((n * cos_i - cos_t) / (n * cos_i + cos_t)) ** 2
+    return (r_s + r_p) / 2
+
+
+def test_mirror_sphere_in_a_constant_environment_reflects_ks_fresnel_times_the_radiance():
+    ks = 0.8
+    mirror = Material("mirror", (0.0, 0.0, 0.0), specular=ks, shininess=1e5)
+    clean, zenith, radial, interior = _sphere_render(mirror, (), ambient=0.0, environment=constant_environment())
+    expected = ks * fresnel_mean(zenith)[None] * np.asarray(CONSTANT_SKY)[:, None, None]
+    sel = interior
+    assert sel.sum() > 300
+    relative = np.abs(clean.specular.numpy() / expected - 1)[:, sel]
+    # F(theta) is steep near grazing, so the tessellation's ~1e-3 rad normal error shows there.
+    assert relative.max() < 0.02 and np.median(relative) < 1e-3
+    assert np.abs(clean.diffuse.numpy()[:, sel]).max() == 0  # black albedo: no diffuse part
+    aolp, dolp = clean_aolp_dolp(clean.stokes)
+    _, rho_s = fresnel_dolps(zenith)
+    keep = sel & (rho_s > 0.05)
+    # A pure reflection: DoLP = rho_s, AoLP perpendicular to the diffuse (radial) one.
+    assert np.abs(dolp - rho_s)[keep].max() < 5e-3 and np.median(np.abs(dolp - rho_s)[keep]) < 1e-3
+    assert wrapped_diff(aolp, radial + math.pi / 2)[keep].max() < 1e-3
+
+
+def test_matte_sphere_in_a_constant_environment_has_colour_albedo_times_radiance():
+    # The white-furnace case: a convex Lambertian body lit from every side by radiance L reflects
+    # albedo * L whatever its normal (irradiance pi L over the pi of the Lambertian lobe).
+    albedo = (0.6, 0.5, 0.4)
+    clean, zenith, radial, interior = _sphere_render(Material("matte", albedo), (), ambient=0.0,
+                                                     environment=constant_environment())
+    expected = np.asarray(albedo)[:, None] * np.asarray(CONSTANT_SKY)[:, None]
+    assert np.abs(clean.diffuse.numpy()[:, interior] / expected - 1).max() < 0.03
+    aolp, dolp = clean_aolp_dolp(clean.stokes)
+    rho_d, _ = fresnel_dolps(zenith)
+    keep = interior & (rho_d > 0.01)
+    assert wrapped_diff(aolp, radial)[keep].max() < 1e-3  # diffuse AoLP: the normal's azimuth
+
+
+def test_metal_sphere_reflects_by_the_conductor_fresnel_equations():
+    n, k, tint = 0.96, 6.69, (0.91, 0.92, 0.92)
+    metal = Material("aluminium", (0.0, 0.0, 0.0), specular=1.0, shininess=1e5, refractive_index=n, extinction=k,
+                     specular_tint=tint)
+    clean, zenith, radial, interior = _sphere_render(metal, (), ambient=0.0, environment=constant_environment())
+    index = complex(n, k)
+    cos_i = np.cos(zenith)
+    cos_t = np.sqrt(1 - np.sin(zenith) ** 2 / index**2 + 0j)
+    r_s = np.abs((cos_i - index * cos_t) / (cos_i + index * cos_t)) ** 2
+    r_p = np.abs((index * cos_i - cos_t) / (index * cos_i + cos_t)) ** 2
+    expected = ((r_s + r_p) / 2)[None] * (np.asarray(tint) * np.asarray(CONSTANT_SKY))[:, None, None]
+    relative = np.abs(clean.specular.numpy() / expected - 1)[:, interior]
+    assert relative.max() < 0.01 and np.median(relative) < 1e-3
+    _, dolp = clean_aolp_dolp(clean.stokes)
+    rho = (r_s - r_p) / (r_s + r_p)
+    assert np.abs(dolp - rho)[interior].max() < 5e-3  # no diffuse polarization on a metal
+
+
+def test_a_softbox_lights_a_matte_sphere_as_an_area_light_and_a_mirror_shows_it_where_it_reflects():
+    box = Softbox((0.0, 0.0, 1.0), 10.0, (5.0, 5.0, 5.0))
+    dark = constant_environment((0.0, 0.0, 0.0), softboxes=(box,))
+    clean, zenith, _, interior = _sphere_render(Material("matte", (0.5, 0.5, 0.5)), (), ambient=0.0, environment=dark)
+    # The irradiance of a small disc of radiance L and solid angle omega at incidence cos i is
+    # L omega cos i; over pi, times the albedo. Here the normals are the sphere's (centre 0, r 0.5).
+    origin, dirs = pixel_grid_rays(*_sphere_camera(), SIZE, SIZE)
+    t = ray_sphere(origin, dirs, (0, 0, 0), 0.5)
+    normals_z = (origin + np.where(np.isfinite(t), t, 1.0)[..., None] * dirs)[..., 2] / 0.5
+    omega = 2 * math.pi * (1 - math.cos(math.radians(10.0)))
+    expected = 0.5 * 5.0 * omega / math.pi * np.clip(normals_z, 0, None)
+    assert np.abs(clean.diffuse.numpy()[0] - expected)[interior].max() < 2e-3
+    mirror = Material("mirror", (0.0, 0.0, 0.0), specular=1.0, shininess=1e5)
+    clean, zenith, _, interior = _sphere_render(mirror, (), ambient=0.0, environment=dark)
+    to_camera = origin - (origin + np.where(np.isfinite(t), t, 1.0)[..., None] * dirs)
+    to_camera /= np.linalg.norm(to_camera, axis=-1, keepdims=True)
+    normal = (origin + np.where(np.isfinite(t), t, 1.0)[..., None] * dirs) / 0.5
+    reflected = 2 * np.einsum("hwi,hwi->hw", normal, to_camera)[..., None] * normal - to_camera
+    angle = np.degrees(np.arccos(np.clip(reflected[..., 2], -1, 1)))
+    inside, outside = interior & (angle < 9.0), interior & (angle > 11.0)
+    assert inside.sum() > 3 and outside.sum() > 300
+    assert np.allclose(clean.specular.numpy()[0][inside], 5.0 * fresnel_mean(zenith)[inside], rtol=1e-3)
+    assert clean.specular.numpy()[0][outside].max() == 0
+
+
+def test_an_environment_lit_scene_is_multi_view_consistent_and_clips_its_brightest_reflections():
+    scene = generate_scene("glazed_pot", num_views=3, width=64, height=64, seed=1)
+    assert scene.meta["environment"]["softboxes"] and "environment lighting" in scene.meta["shading"]
+    overexposed = torch.stack(scene.overexposed_masks) & torch.stack([v.mask for v in scene.views])
+    assert 0 < overexposed.float().sum() / torch.stack([v.mask for v in scene.views]).float().sum() < 0.1
+    for i, view in enumerate(scene.views):
+        unclipped = ~scene.overexposed_masks[i][0] & view.mask[0]
+        err = (view.image - (scene.diffuse_gt[i] + scene.specular_gt[i]))[:, unclipped]
+        assert err.abs().mean() < 0.01
+        # The background shows the surroundings, not the dim backdrop.
+        assert scene.diffuse_gt[i][:, ~view.mask[0]].mean() > 0.1
+
+
+def test_environment_rejects_bad_settings():
+    with pytest.raises(ValueError, match="radius_deg"):
+        Softbox((0.0, 0.0, 1.0), 0.0, (1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="unit vector"):
+        Softbox((0.0, 0.0, 2.0), 5.0, (1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="texture_amplitude"):
+        Environment(texture_amplitude=1.0)
+    with pytest.raises(ValueError, match="ground"):
+        Environment(ground=(-0.1, 0.0, 0.0))
 
 
 def test_glossy_scene_aolp_flips_where_specular_dominates(camera):

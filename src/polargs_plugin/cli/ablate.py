@@ -34,8 +34,9 @@ Variants:
 
 Scenes (comma-separated): a bundled name (glossy_plane_sphere, shiny_torus, bumpy_mixed,
 torus_knot; generated once into --scene-cache with --views/--size), family:K (the procedural
-family's scene of seed K, with its own views and size; seeds below 10000 are for development,
-from 10000 on for testing, docs/scene-family.md), or a dataset folder in any supported format as
+family's scene of seed K, with its own views and size; development seeds 0-9999 and 20000-29999,
+test seeds 10000-19999 and from 30000 on, the second block with environment lighting,
+docs/scene-family.md), or a dataset folder in any supported format as
 NAME=PATH:GT_MESH, NAME=PATH or PATH (GT mesh: gt_mesh.ply or mesh.ply in the folder).
 
 Resumable: run folders are complete or absent; finished runs are skipped when the command runs

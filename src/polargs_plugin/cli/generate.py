@@ -20,7 +20,9 @@ _EPILOG = """examples:
 cameras, views and size all drawn from the seed; --views, --size and --noise override theirs), as
 `polargs ablate --scenes family:K` and `polargs demo --scene family:K` spell it; `--scene family
 --seed K` is the same scene.
-Seeds below 10000 are for development, seeds from 10000 on are test seeds (docs/scene-family.md).
+Seeds 0-9999 and 20000-29999 are for development, 10000-19999 and from 30000 on are test seeds;
+from 20000 on, seeds draw their lighting (lights, surroundings they mirror, or both) and may raise
+the object on a stand (docs/scene-family.md).
 
 The folder holds four RGB angle images per view (0/45/90/135 deg), cameras.json (K and
 world_to_camera, OpenCV frame), masks, ground-truth normals/depth/diffuse/specular, highlight and

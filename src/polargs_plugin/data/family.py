@@ -10,16 +10,24 @@
   textured, specular strength and sharpness over wide ranges; some metals (a conductor's complex
   index, tinted highlights, no diffuse polarization; :mod:`polargs_plugin.optics.fresnel`);
 - **lights and exposure**: a key light, sometimes a fill and a point light, ambient light, an
-  exposure that clips the highlights on some seeds; sensor noise;
+  exposure that clips the highlights on some seeds; sensor noise. From :data:`LIT_SEED_START` on,
+  a seed draws its **lighting**: lights, surroundings the object mirrors (an
+  :class:`~polargs_plugin.data.environment.Environment`: a sky, a coloured horizon, a textured
+  ground, one to three softboxes bright enough to clip on some seeds), or both; under
+  surroundings, the dielectrics are glossier (k_s 0.5-1, lobes from near-mirror to broad);
 - **a camera layout**: the upper hemisphere, a full orbit, 12 sparse views, or low elevations
   only (surfaces facing up are then seen at grazing angles only); 24-36 views (12 for the sparse
   layout) of 128-160 px;
 - sometimes **a floor** the object stands on (support: not in the masks, not in the evaluation's
-  ground truth).
+  ground truth); from :data:`LIT_SEED_START` on, the ``stand`` layout raises the object on a thin
+  rod above the floor and looks from -15 to 60 deg, so its underside is seen by a few low views.
 
-The same seed gives the same scene on every machine (numpy's PCG64 stream of ``seed``). Seeds
-below :data:`TEST_SEED_START` are for development; seeds from it on are test seeds, reported and
-never used to choose a rule or a default (docs/results.md, "Protocol"). The scene's name is
+The same seed gives the same scene on every machine (numpy's PCG64 stream of ``seed``). The seeds
+come in two blocks: below :data:`LIT_SEED_START`, lights only (the first family); from it on,
+drawn lighting and the stand layout. In each block the first 10000 seeds are for development and
+the rest are test seeds, reported and never used to choose a rule or a default (docs/results.md,
+"Protocol"): development 0-9999 and 20000-29999, test 10000-19999 and 30000 on
+(:func:`is_test_seed`). The scene's name is
 ``family-<seed>`` (:func:`family_name`); ``polargs generate --scene family:K``, ``polargs demo
 --scene family:K`` and ``polargs ablate --scenes family:K`` render it.
 """
@@ -35,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import open3d as o3d
 
+from polargs_plugin.data.environment import Environment, Softbox
 from polargs_plugin.data.scenes import (
     Light,
     Material,
@@ -52,6 +61,8 @@ if TYPE_CHECKING:
 __all__ = [
     "FAMILY",
     "TEST_SEED_START",
+    "LIT_SEED_START",
+    "LIGHTINGS",
     "LAYOUTS",
     "FamilyScene",
     "FamilySettings",
@@ -66,10 +77,21 @@ __all__ = [
 
 #: The family's name on the command line (``family:K``; ``polargs generate --scene family --seed K`` too).
 FAMILY = "family"
-#: Seeds from here on are test seeds: reported only, never used to choose (docs/results.md).
+#: Seeds from here on, in each block, are test seeds: reported only, never used to choose
+#: (docs/results.md).
 TEST_SEED_START = 10_000
-#: Camera layouts a seed draws from, with their probabilities.
+#: The second block of seeds starts here: drawn lighting and the stand layout.
+LIT_SEED_START = 20_000
+#: Camera layouts a seed draws from, with their probabilities (first block).
 LAYOUTS: dict[str, float] = {"hemisphere": 0.35, "orbit": 0.25, "sparse": 0.2, "low": 0.2}
+#: Camera layouts of the second block: the first block's and ``stand``.
+LIT_LAYOUTS: dict[str, float] = {"hemisphere": 0.3, "orbit": 0.15, "sparse": 0.15, "low": 0.15, "stand": 0.25}
+#: Lightings a second-block seed draws from, with their probabilities (the first block: lights).
+LIGHTINGS: dict[str, float] = {"lights": 0.2, "environment": 0.5, "both": 0.3}
+# How high the stand raises the object's lowest point above the floor, and the rod's radius.
+_STAND_HEIGHT = 0.35
+_STAND_RADIUS = 0.035
+_STAND_MATERIAL = Material("stand", (0.25, 0.25, 0.25), specular=0.05, shininess=8.0)
 #: Views of the sparse layout.
 SPARSE_VIEWS = 12
 #: Image sizes a seed draws from (square images).
@@ -101,8 +123,14 @@ def parse_family(text: str) -> int | None:
 
 
 def is_test_seed(seed: int) -> bool:
-    """Whether ``seed`` is a test seed (>= :data:`TEST_SEED_START`): reported, never chosen on."""
-    return int(seed) >= TEST_SEED_START
+    """Whether ``seed`` is a test seed (10000-19999 or from 30000 on): reported, never chosen on."""
+    seed = int(seed)
+    return seed >= LIT_SEED_START + TEST_SEED_START or TEST_SEED_START <= seed < LIT_SEED_START
+
+
+def is_lit_seed(seed: int) -> bool:
+    """Whether ``seed`` is of the second block (>= :data:`LIT_SEED_START`): drawn lighting, stand layout."""
+    return int(seed) >= LIT_SEED_START
 
 
 @dataclass
@@ -115,6 +143,7 @@ class FamilyScene:
         settings: its cameras, image size, noise and floor (:func:`family_settings`).
         parts: one description per part of the shape (kind and parameters).
         exposure: factor on every light (above about 1.3, highlights clip).
+        lighting: one of :data:`LIGHTINGS` (``"lights"`` for every first-block seed).
     """
 
     seed: int
@@ -122,13 +151,14 @@ class FamilyScene:
     settings: "FamilySettings"
     parts: list[dict[str, Any]] = field(default_factory=list)
     exposure: float = 1.0
+    lighting: str = "lights"
 
     def describe(self) -> dict[str, Any]:
         """JSON-ready record of the draw (for scene.json)."""
         s = self.settings
         return {"seed": self.seed, "test_seed": is_test_seed(self.seed), "layout": s.layout, "floor": s.floor,
                 "num_views": s.num_views, "size": s.size, "noise_std": s.noise_std, "exposure": self.exposure,
-                "parts": self.parts}
+                "lighting": self.lighting, "parts": self.parts}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,22 +394,27 @@ def _union(parts: list[Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return np.concatenate(vertices), np.concatenate(triangles), np.concatenate(normals), np.concatenate(owner)
 
 
-def _dielectric(rng: np.random.Generator, name: str) -> Material:
+def _dielectric(rng: np.random.Generator, name: str, mirrored: bool) -> Material:
+    """A dielectric; ``mirrored`` (surroundings light the scene): a glossy one whose reflection
+    k_s F(theta) runs from near-mirror to broad (under point lights, a Blinn-Phong highlight)."""
     hue, saturation, value = rng.uniform(0, 1), rng.uniform(0.0, 0.8), rng.uniform(0.2, 0.8)
     albedo = tuple(float(c) for c in _hsv_to_rgb(hue, saturation, value))
     texture_kind = str(rng.choice(["uniform", "noise", "checker"], p=[0.35, 0.4, 0.25]))
     texture = Texture() if texture_kind == "uniform" else Texture(
         texture_kind, float(rng.uniform(0.1, 0.4)), float(rng.uniform(0.1, 0.6)))
-    return Material(name, albedo, texture, specular=_log_uniform(rng, 0.02, 2.5), shininess=_log_uniform(rng, 5.0, 300.0),
+    specular, shininess = ((float(rng.uniform(0.5, 1.0)), _log_uniform(rng, 30.0, 20000.0)) if mirrored
+                           else (_log_uniform(rng, 0.02, 2.5), _log_uniform(rng, 5.0, 300.0)))
+    return Material(name, albedo, texture, specular=specular, shininess=shininess,
                     refractive_index=float(rng.uniform(1.3, 1.8)))
 
 
-def _metal(rng: np.random.Generator, name: str) -> Material:
+def _metal(rng: np.random.Generator, name: str, mirrored: bool) -> Material:
     metal, n, k, tint = METALS[int(rng.integers(len(METALS)))]
     diffuse = rng.uniform(0.1, 0.25)  # rough-surface scattering; the highlight is the metal's reflection
-    return Material(f"{name}_{metal}", tuple(float(diffuse * c) for c in tint), Texture(),
-                    specular=float(rng.uniform(0.5, 2.0)), shininess=_log_uniform(rng, 10.0, 150.0),
-                    refractive_index=n, extinction=k, specular_tint=tint)
+    specular = float(rng.uniform(0.7, 1.0)) if mirrored else float(rng.uniform(0.5, 2.0))
+    shininess = _log_uniform(rng, 50.0, 5000.0) if mirrored else _log_uniform(rng, 10.0, 150.0)
+    return Material(f"{name}_{metal}", tuple(float(diffuse * c) for c in tint), Texture(), specular=specular,
+                    shininess=shininess, refractive_index=n, extinction=k, specular_tint=tint)
 
 
 def _hsv_to_rgb(hue: float, saturation: float, value: float) -> np.ndarray:
@@ -410,8 +445,10 @@ class FamilySettings:
 
     Attributes:
         seed: the seed.
-        layout: the camera layout, one of :data:`LAYOUTS`.
-        floor: whether the object stands on a floor (never with the full orbit, which looks from below).
+        layout: the camera layout, one of :data:`LAYOUTS` (:data:`LIT_LAYOUTS` from
+            :data:`LIT_SEED_START` on; ``stand``: the object raised on a thin rod above a floor).
+        floor: whether the object stands on a floor (never with the full orbit, which looks from
+            below; always with the stand).
         elevations_deg: the band of camera elevations (degrees).
         num_views: views (24-36; 12 for the sparse layout).
         size: image width = height (pixels).
@@ -434,10 +471,11 @@ class FamilySettings:
 def family_settings(seed: int) -> FamilySettings:
     """The cameras, image size, noise and floor of ``seed`` (its settings stream only)."""
     rng = _streams(seed)["settings"]
-    layout = str(rng.choice(list(LAYOUTS), p=list(LAYOUTS.values())))
-    floor = bool(rng.random() < 0.4) and layout != "orbit"
+    layouts = LIT_LAYOUTS if is_lit_seed(seed) else LAYOUTS
+    layout = str(rng.choice(list(layouts), p=list(layouts.values())))
+    floor = (bool(rng.random() < 0.4) and layout != "orbit") or layout == "stand"
     band = {"hemisphere": (8.0, 75.0), "orbit": (-60.0, 70.0), "sparse": (5.0 if floor else -30.0, 65.0),
-            "low": (1.0 if floor else -8.0, 15.0)}[layout]
+            "low": (1.0 if floor else -8.0, 15.0), "stand": (-15.0, 60.0)}[layout]
     views = SPARSE_VIEWS if layout == "sparse" else int(rng.integers(24, 37))
     return FamilySettings(int(seed), layout, floor, band, views, int(rng.choice(SIZES)),
                           _log_uniform(rng, 0.002, 0.012), float(rng.uniform(2.8, 3.3)), float(rng.uniform(0.0, 360.0)))
@@ -470,25 +508,65 @@ def _shape(rng: np.random.Generator, upright: bool) -> tuple[np.ndarray, np.ndar
 
 
 def _materials(rng: np.random.Generator, vertices: np.ndarray, triangles: np.ndarray, owner: np.ndarray,
-               num_parts: int) -> tuple[list[Material], np.ndarray]:
+               num_parts: int, mirrored: bool = False) -> tuple[list[Material], np.ndarray]:
     """The object's materials and each triangle's: the body's, each attached part's (the body's
-    or its own), and on some seeds a second material over part of the body."""
-    materials = [_metal(rng, "metal") if rng.random() < 0.2 else _dielectric(rng, "body")]
+    or its own), and on some seeds a second material over part of the body; ``mirrored``: the
+    glossy materials of a scene lit by surroundings."""
+    materials = [_metal(rng, "metal", mirrored) if rng.random() < 0.2 else _dielectric(rng, "body", mirrored)]
     part_material = [0]
     for index in range(1, num_parts):
         if rng.random() < 0.5:
             part_material.append(0)
         else:
-            materials.append(_metal(rng, f"part{index}") if rng.random() < 0.2 else _dielectric(rng, f"part{index}"))
+            materials.append(_metal(rng, f"part{index}", mirrored) if rng.random() < 0.2
+                             else _dielectric(rng, f"part{index}", mirrored))
             part_material.append(len(materials) - 1)
     triangle_material = np.asarray(part_material)[owner]
     if rng.random() < 0.3:  # the body in two materials, split by a smooth pattern over its surface
-        materials.append(_dielectric(rng, "body_second"))
+        materials.append(_dielectric(rng, "body_second", mirrored))
         centroid = vertices[triangles].mean(axis=1)
         wave = _unit(rng) * rng.uniform(3.0, 6.0)
         second = (owner == 0) & (np.sin(centroid @ wave + rng.uniform(0, 2 * np.pi)) > rng.uniform(-0.3, 0.3))
         triangle_material = np.where(second, len(materials) - 1, triangle_material)
     return materials, triangle_material
+
+
+def _environment(rng: np.random.Generator, exposure: float) -> Environment:
+    """Surroundings of a second-block seed: a sky from a coloured horizon to a bluish zenith, a
+    dim ground, a texture over directions and one to three softboxes, all times ``exposure``."""
+
+    def colour(hue: tuple[float, float], saturation: tuple[float, float], value: tuple[float, float]) -> tuple:
+        return tuple(float(exposure * c) for c in _hsv_to_rgb(rng.uniform(*hue), rng.uniform(*saturation), rng.uniform(*value)))
+
+    zenith, horizon, ground = colour((0.5, 0.7), (0.2, 0.6), (0.12, 0.3)), colour((0, 1), (0.2, 0.7), (0.15, 0.4)), \
+        colour((0, 1), (0.1, 0.5), (0.03, 0.15))
+    amplitude, scale = float(rng.uniform(0.15, 0.5)), float(rng.uniform(0.2, 0.5))
+    boxes = []
+    for _ in range(int(rng.choice([1, 2, 3], p=[0.35, 0.4, 0.25]))):
+        elevation, azimuth = math.radians(rng.uniform(10.0, 70.0)), rng.uniform(0, 2 * np.pi)
+        direction = (math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation))
+        radius = float(rng.uniform(4.0, 20.0))
+        # Each box adds ``share`` (times the albedo) to the colour of a surface facing it: a small
+        # box is bright (its reflection clips), a large one dim, as a lamp and a window are.
+        share = exposure * float(rng.uniform(0.08, 0.3))
+        level = share * math.pi / (2 * math.pi * (1 - math.cos(math.radians(radius))))
+        boxes.append(Softbox(direction, radius, tuple(float(level * c) for c in rng.uniform(0.9, 1.0, 3))))
+    return Environment(zenith, horizon, ground, amplitude, scale, tuple(boxes))
+
+
+def _rod(bottom: np.ndarray, top_z: float, radius: float, sides: int = 24, rings: int = 8) -> Mesh:
+    """An open vertical cylinder of ``radius`` from the point ``bottom`` (3,) up to height ``top_z``."""
+    phi = 2 * np.pi * np.arange(sides) / sides
+    z = np.linspace(bottom[2], top_z, rings + 1)
+    radial = np.stack([np.cos(phi), np.sin(phi), np.zeros(sides)], axis=1)
+    vertices = np.concatenate([np.column_stack([bottom[0] + radius * radial[:, 0], bottom[1] + radius * radial[:, 1],
+                                                np.full(sides, height)]) for height in z])
+    normals = np.tile(radial, (rings + 1, 1))
+    i, j = np.meshgrid(np.arange(rings), np.arange(sides), indexing="ij")
+    a, b = i * sides + j, i * sides + (j + 1) % sides
+    c, d = a + sides, b + sides
+    triangles = np.concatenate([np.stack([a.ravel(), b.ravel(), d.ravel()], 1), np.stack([a.ravel(), d.ravel(), c.ravel()], 1)])
+    return vertices, triangles.astype(np.int64), normals
 
 
 def _floor_material(rng: np.random.Generator) -> Material:
@@ -505,41 +583,58 @@ def family_scene(seed: int) -> FamilyScene:
     """
     settings = family_settings(seed)
     streams = _streams(seed)
+    lighting_rng = streams["lights"]
+    lighting = str(lighting_rng.choice(list(LIGHTINGS), p=list(LIGHTINGS.values()))) if is_lit_seed(seed) else "lights"
     vertices, triangles, normals, owner, records = _shape(streams["shape"], upright=settings.floor)
-    materials, triangle_material = _materials(streams["materials"], vertices, triangles, owner, len(records))
+    materials, triangle_material = _materials(streams["materials"], vertices, triangles, owner, len(records),
+                                              mirrored=lighting != "lights")
     num_object_materials = len(materials)
     object_triangles = None
     if settings.floor:
-        ground = plane(5.0, height=float(vertices[np.unique(triangles), 2].min()) - 1e-3, segments=10)
+        lowest = vertices[np.unique(triangles)][np.argmin(vertices[np.unique(triangles), 2])]
+        raised = _STAND_HEIGHT if settings.layout == "stand" else 0.0
+        support = [plane(5.0, height=float(lowest[2]) - 1e-3 - raised, segments=10)]
         materials.append(_floor_material(streams["materials"]))
-        object_triangles = np.concatenate([np.ones(len(triangles), dtype=bool), np.zeros(len(ground[1]), dtype=bool)])
-        triangles = np.concatenate([triangles, ground[1] + len(vertices)])
-        vertices = np.concatenate([vertices, ground[0]])
-        normals = np.concatenate([normals, ground[2]])
-        triangle_material = np.concatenate([triangle_material, np.full(len(ground[1]), len(materials) - 1)])
-    lighting = streams["lights"]
-    exposure = _log_uniform(lighting, 0.7, 2.0)
+        support_material = [len(materials) - 1]
+        if raised:  # a thin rod from the floor up into the object's lowest point
+            support.append(_rod(lowest - np.array([0.0, 0.0, raised]), float(lowest[2]) + 0.05, _STAND_RADIUS))
+            materials.append(_STAND_MATERIAL)
+            support_material.append(len(materials) - 1)
+        object_triangles = np.concatenate([np.ones(len(triangles), dtype=bool)]
+                                          + [np.zeros(len(mesh[1]), dtype=bool) for mesh in support])
+        for mesh, material in zip(support, support_material):
+            triangles = np.concatenate([triangles, mesh[1] + len(vertices)])
+            vertices = np.concatenate([vertices, mesh[0]])
+            normals = np.concatenate([normals, mesh[2]])
+            triangle_material = np.concatenate([triangle_material, np.full(len(mesh[1]), material)])
+    exposure = _log_uniform(lighting_rng, 0.7, 2.0)
+    lights = _lights(lighting_rng, exposure) if lighting != "environment" else ()
+    # Under lights and surroundings together, the surroundings at half the exposure keep the sum in range.
+    environment = _environment(lighting_rng, exposure * (0.5 if lighting == "both" else 1.0)) if lighting != "lights" else None
+    ambient = float(lighting_rng.uniform(0.05, 0.18)) if lighting != "environment" else 0.0
     spec = SceneSpec(
         name=family_name(seed),
         description=f"family scene {seed}: " + " + ".join(r["kind"] for r in records)
-        + f", {num_object_materials} material(s){' on a floor' if settings.floor else ''}, {settings.layout} cameras",
+        + f", {num_object_materials} material(s){' on a floor' if settings.floor else ''}, {settings.layout} cameras"
+        + ("" if lighting == "lights" else f", lit by {'surroundings' if lighting == 'environment' else 'lights and surroundings'}"),
         vertices=vertices,
         triangles=triangles,
         vertex_normals=normals,
         triangle_material=triangle_material.astype(np.int64),
         materials=tuple(materials),
-        lights=_lights(lighting, exposure),
-        ambient=float(lighting.uniform(0.05, 0.18)),
+        lights=lights,
+        ambient=ambient,
         target=(0.0, 0.0, 0.0),
         camera_distance=settings.camera_distance,
         fov_deg=40.0,
         elevations_deg=settings.elevations_deg,
-        background=float(lighting.uniform(0.02, 0.08)),
+        background=float(lighting_rng.uniform(0.02, 0.08)),
         object_triangles=object_triangles,
         camera_layout="spiral",
         camera_azimuth_deg=settings.azimuth_deg,
+        environment=environment,
     )
-    return FamilyScene(seed=int(seed), spec=spec, settings=settings, parts=records, exposure=exposure)
+    return FamilyScene(seed=int(seed), spec=spec, settings=settings, parts=records, exposure=exposure, lighting=lighting)
 
 
 def _plain(record: dict[str, Any]) -> dict[str, Any]:

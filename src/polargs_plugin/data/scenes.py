@@ -15,6 +15,10 @@ Scenes (each chosen to be hard for photometric 3D Gaussian Splatting, as targete
   clay) under a strong light, so that the glossy highlights overexpose (clip) and lose their
   polarization as on a real sensor.
 - ``torus_knot``: a glossy (2, 3) torus knot with self-occlusions and thin parts.
+- ``glazed_pot``: a glazed, light-coloured rippled pot with an aluminium knob on a floor, lit by
+  surroundings it mirrors (:class:`~polargs_plugin.data.environment.Environment`: a sky, a
+  coloured horizon, two softboxes whose reflections clip), no point lights: the reflections move
+  with the view over much of the surface, the failure photometric correction exists for.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ import numpy as np
 import open3d as o3d
 
 from polargs_plugin.data.cameras import look_at
+from polargs_plugin.data.environment import Environment, Softbox
+from polargs_plugin.data.textures import Texture, pattern_at
 
 __all__ = [
     "Texture",
@@ -46,29 +52,11 @@ __all__ = [
     "CAMERA_LAYOUTS",
     "intrinsics",
     "evaluate_albedo",
+    "pattern_at",
     "FLOOR_TEXTURES",
     "with_floor_texture",
     "same_arguments_as",
 ]
-
-
-@dataclass(frozen=True)
-class Texture:
-    """Procedural albedo modulation evaluated at the 3D hit point (so it is multi-view consistent).
-
-    Attributes:
-        kind: ``"uniform"`` (textureless), ``"checker"`` (3D checkerboard of cell ``scale``),
-            ``"noise"`` (sum of fixed 3D sinusoids with wavelength about ``scale``) or
-            ``"speckle"`` (3D value noise of cell ``scale`` plus two finer octaves: irregular blobs
-            with corners at several scales, what feature matchers such as SfM's need).
-        scale: spatial period in world units.
-        amplitude: relative albedo variation in [0, 1]; albedo * (1 + amplitude * pattern), with
-            pattern in [-1, 1].
-    """
-
-    kind: str = "uniform"
-    scale: float = 0.25
-    amplitude: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -155,6 +143,9 @@ class SceneSpec:
             ``"rings"`` (three elevation rings, :func:`orbit_cameras`) or ``"spiral"`` (evenly
             spread over the band of elevations, :func:`spiral_cameras`).
         camera_azimuth_deg: azimuth of the first camera (turns the whole layout about the z axis).
+        environment: surroundings that light the scene and that its glossy surfaces mirror
+            (:class:`~polargs_plugin.data.environment.Environment`), besides ``lights`` and
+            ``ambient``; None: lights and ambient only.
     """
 
     name: str
@@ -174,6 +165,7 @@ class SceneSpec:
     object_triangles: np.ndarray | None = None
     camera_layout: str = "rings"
     camera_azimuth_deg: float = 0.0
+    environment: Environment | None = None
 
     def object_mask(self) -> np.ndarray:
         """(F,) bool: which triangles belong to the object (all of them when not specified)."""
@@ -297,67 +289,9 @@ def _merge(parts: list[tuple[Mesh, np.ndarray]]) -> tuple[np.ndarray, np.ndarray
     return (np.concatenate(vertices), np.concatenate(triangles), np.concatenate(normals), np.concatenate(materials))
 
 
-# ---------------------------------------------------------------------------------------------
-# Procedural texture.
-
-# Fixed wave vectors (cycles per wavelength) and phases of the "noise" pattern; fixed so that the
-# texture never depends on the noise seed.
-_WAVES = np.array(
-    [[1.0, 0.31, -0.52], [-0.27, 0.93, 0.41], [0.48, -0.36, 0.88], [0.77, 0.69, -0.14], [-0.62, 0.18, 0.71]]
-)
-_PHASES = np.array([0.3, 1.7, 4.1, 2.6, 5.2])
-
-
-# Odd multipliers of the lattice hash of the "speckle" pattern (large primes, as in spatial hashing).
-_HASH = np.array([73856093, 19349663, 83492791], dtype=np.int64)
-_SPECKLE_OCTAVES = 3
-
-
-def _lattice_values(cells: np.ndarray) -> np.ndarray:
-    """A fixed pseudo-random value in [-1, 1) for each integer lattice point (..., 3)."""
-    h = np.bitwise_xor.reduce(cells * _HASH, axis=-1) & 0xFFFFFFFF
-    h = (h * 2654435761) & 0xFFFFFFFF  # Knuth's multiplicative mix spreads nearby cells apart
-    h ^= h >> 15
-    return h.astype(np.float64) / 2**31 - 1.0
-
-
-def _value_noise(points: np.ndarray, scale: float) -> np.ndarray:
-    """(N,) trilinearly interpolated lattice values of cell ``scale`` with a smoothstep fade."""
-    grid = points / scale
-    base = np.floor(grid)
-    t = grid - base
-    t = t * t * (3.0 - 2.0 * t)
-    cells = base.astype(np.int64)
-    total = np.zeros(points.shape[0])
-    for corner in np.ndindex(2, 2, 2):
-        offset = np.array(corner)
-        weight = np.prod(np.where(offset == 1, t, 1.0 - t), axis=1)
-        total += weight * _lattice_values(cells + offset)
-    return total
-
-
-def _pattern(points: np.ndarray, texture: Texture) -> np.ndarray:
-    """(N,) pattern in [-1, 1] at world points (N, 3)."""
-    if texture.kind == "uniform":
-        return np.zeros(points.shape[0])
-    if texture.kind == "checker":
-        # A surface lying on a cell boundary (a floor at height 0) gets hit points a rounding error
-        # above or below it; the small shift puts them all in one cell, so its parity does not
-        # flicker from pixel to pixel and from view to view.
-        cells = np.floor(points / texture.scale + 1e-4).astype(np.int64).sum(axis=1)
-        return np.where(cells % 2 == 0, 1.0, -1.0)
-    if texture.kind == "noise":
-        waves = 2 * np.pi * _WAVES / texture.scale
-        return np.sin(points @ waves.T + _PHASES).mean(axis=1) * (5 / 3)  # roughly unit range
-    if texture.kind == "speckle":
-        octaves = [0.5**k * _value_noise(points, texture.scale * 0.5**k) for k in range(_SPECKLE_OCTAVES)]
-        return np.sum(octaves, axis=0)  # std about 0.45; evaluate_albedo clips the rare |values| > 1
-    raise ValueError(f"unknown texture kind {texture.kind!r}")
-
-
 def evaluate_albedo(points: np.ndarray, material: Material) -> np.ndarray:
     """(N, 3) albedo of ``material`` at world points (N, 3)."""
-    pattern = np.clip(_pattern(points, material.texture), -1.0, 1.0)
+    pattern = np.clip(pattern_at(points, material.texture), -1.0, 1.0)
     factor = 1.0 + material.texture.amplitude * pattern
     return np.asarray(material.albedo)[None, :] * factor[:, None]
 
@@ -598,6 +532,53 @@ def _torus_knot() -> SceneSpec:
     )
 
 
+def _rippled_body() -> Mesh:
+    """A glazed pot's body: a squat ellipsoid with gentle vertical ripples, resting on z = 0."""
+    _, triangles, unit = icosphere(1.0, subdivisions=5)
+    azimuth = np.arctan2(unit[:, 1], unit[:, 0])
+    ripple = 1.0 + 0.035 * np.cos(8.0 * azimuth) * (1.0 - unit[:, 2] ** 2)
+    vertices = unit * np.array([0.58, 0.58, 0.48]) * ripple[:, None] + np.array([0.0, 0.0, 0.48])
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles))
+    mesh.compute_vertex_normals()
+    return vertices, triangles, np.asarray(mesh.vertex_normals, dtype=np.float64)
+
+
+def _glazed_pot() -> SceneSpec:
+    knob = icosphere(0.1, center=(0.0, 0.0, 1.04), subdivisions=3)
+    ground = plane(3.0, height=0.0, segments=8)
+    vertices, triangles, normals, mats = _merge([(_rippled_body(), 0), (knob, 1), (ground, 2)])
+    return SceneSpec(
+        name="glazed_pot",
+        description="glazed light-coloured rippled pot with an aluminium knob on a textured floor, mirroring "
+        "a sky, a coloured horizon and two softboxes (environment lighting; its brightest reflections clip)",
+        vertices=vertices,
+        triangles=triangles,
+        vertex_normals=normals,
+        triangle_material=mats,
+        materials=(
+            Material("cream_glaze", albedo=(0.72, 0.66, 0.55), texture=Texture("noise", 0.3, 0.08), specular=1.0,
+                     shininess=2000.0),
+            Material("aluminium", albedo=(0.09, 0.09, 0.09), specular=1.0, shininess=400.0, refractive_index=0.96,
+                     extinction=6.69, specular_tint=(0.91, 0.92, 0.92)),
+            Material("matte_floor", albedo=(0.40, 0.38, 0.35), texture=FLOOR_TEXTURES["checker"], specular=0.03,
+                     shininess=8.0),
+        ),
+        lights=(),
+        ambient=0.0,
+        target=(0.0, 0.0, 0.45),
+        camera_distance=3.0,
+        fov_deg=40.0,
+        elevations_deg=(15.0, 55.0),
+        object_triangles=mats < 2,  # the pot and its knob; the floor is support, not evaluated
+        environment=Environment(
+            zenith=(0.26, 0.33, 0.46), horizon=(0.50, 0.38, 0.25), ground=(0.12, 0.10, 0.08),
+            texture_amplitude=0.4, texture_scale=0.3,
+            softboxes=(Softbox(_unit((0.6, -0.5, 0.62)), 18.0, (6.0, 6.0, 5.7)),
+                       Softbox(_unit((-0.75, 0.45, 0.3)), 11.0, (5.0, 5.3, 5.8))),
+        ),
+    )
+
+
 def _unit(v) -> tuple[float, float, float]:
     v = np.asarray(v, dtype=np.float64)
     return tuple(float(x) for x in v / np.linalg.norm(v))
@@ -608,6 +589,7 @@ SCENE_BUILDERS: dict[str, Callable[[], SceneSpec]] = {
     "shiny_torus": _shiny_torus,
     "bumpy_mixed": _bumpy_mixed,
     "torus_knot": _torus_knot,
+    "glazed_pot": _glazed_pot,
 }
 
 

@@ -9,7 +9,14 @@ Pipeline per view (docs/dataset-format.md describes the model and the files):
 2. Shading in training-colour units (the colour a trainer sees, s0 / 2): Lambertian diffuse
    c_d = albedo * (ambient + sum_l E_l max(n.l, 0) vis_l) and a Blinn-Phong highlight
    c_s = k_s tint sum_l E_l max(n.h, 0)^shininess [n.l > 0] vis_l (tint white for a dielectric,
-   the metal's colour for a conductor), with lights fixed in the world.
+   the metal's colour for a conductor), with lights fixed in the world. A scene with an
+   environment (:class:`~polargs_plugin.data.environment.Environment`, surroundings fixed in the
+   world) adds its irradiance over pi to the diffuse factor (sky and ground by a fixed sphere
+   quadrature, softboxes as area lights, both shadowed) and its reflection to the specular
+   colour: k_s F(theta) tint L_lobe, F the material's Fresnel reflectance (R_s + R_p) / 2
+   (a conductor's by its complex index) and L_lobe the environment seen through the lobe
+   cos^shininess around the mirror direction (where the scene blocks a direction, the blocking
+   surface's albedo times the environment's mean radiance).
 3. Polarization (Fresnel, unpolarized light, n = the material's ``refractive_index`` or else
    ``refractive_index``), per pixel
    s = 2 c_d [1, rho_d cos 2a, rho_d sin 2a] + 2 c_s [1, -rho_s cos 2a, -rho_s sin 2a],
@@ -21,13 +28,15 @@ Pipeline per view (docs/dataset-format.md describes the model and the files):
    clipping to [0, 1] (an overexposed pixel clips in every angle and loses its polarization),
    quantisation to ``quantize_bits``; ``View.stokes`` is recomputed from these images.
 
-The background (no hit) is a dim unpolarized backdrop, weakly textured by the world ray direction.
+The background (no hit) is the environment where the scene has one, else a dim unpolarized
+backdrop weakly textured by the world ray direction.
 Besides the views, the scene records which view sees which of the object's triangles
 (``SyntheticScene.visibility``, exact ray casting: :func:`polargs_plugin.data.visibility.triangle_visibility`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -38,6 +47,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from polargs_plugin.data.environment import lobe_directions, lobe_width, sphere_directions
 from polargs_plugin.data.scenes import (
     SCENE_BUILDERS,
     Light,
@@ -53,7 +63,13 @@ from polargs_plugin.data.scenes import (
 )
 from polargs_plugin.data.visibility import triangle_visibility
 from polargs_plugin.optics.azimuth import normal_azimuth, pixel_rays
-from polargs_plugin.optics.fresnel import dolp_diffuse, dolp_specular, dolp_specular_conductor
+from polargs_plugin.optics.fresnel import (
+    dolp_diffuse,
+    dolp_specular,
+    dolp_specular_conductor,
+    fresnel_reflectance,
+    fresnel_reflectance_conductor,
+)
 from polargs_plugin.optics.stokes import intensities_from_stokes, stokes_from_intensities
 from polargs_plugin.types import View
 
@@ -89,7 +105,8 @@ MASK_KINDS = ("object", "surface")
 #: (refractive index, conductors, specular tint) in scene.json. The images did not change.
 #: 4: a checker texture on a surface lying on a cell boundary (glossy_plane_sphere's floor) keeps
 #: one colour per cell instead of flickering with the hit points' rounding.
-GENERATOR_VERSION = 4
+#: 5: environment lighting (scene.json's ``environment``); scenes without one render as before.
+GENERATOR_VERSION = 5
 #: Supported sensor bit depths (angle images are always quantised, as a real sensor's are).
 QUANTIZE_BITS = (8, 16)
 #: A scene size for tests and smoke runs: ``generate_scene(name, **SMALL_SETTINGS)``.
@@ -98,6 +115,9 @@ SMALL_SETTINGS = {"num_views": 8, "width": 48, "height": 48}
 _BACKDROP_TEXTURE = Texture("noise", scale=0.6, amplitude=0.25)
 # Offset of shadow-ray origins along the geometric normal, against self-intersection.
 _SHADOW_EPS = 1e-4
+# Directions per specular lobe of an environment reflection, and rays per ray-casting call.
+_LOBE_SAMPLES = 16
+_RAY_CHUNK = 1 << 21
 
 
 @dataclass
@@ -325,8 +345,12 @@ class SceneRenderer:
 
     def _intersect(self, origin: np.ndarray, dirs: np.ndarray) -> _Hits:
         """Cast rays from ``origin`` along ``dirs`` (N, 3); shading normals face the ray origin."""
+        return self._intersect_rays(np.broadcast_to(origin, dirs.shape), dirs)
+
+    def _intersect_rays(self, origins: np.ndarray, dirs: np.ndarray) -> _Hits:
+        """Cast rays from ``origins`` (N, 3) along ``dirs`` (N, 3); shading normals face the origins."""
         spec = self.spec
-        rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=1).astype(np.float32)
+        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
         result = self._scene.cast_rays(o3d.core.Tensor(rays))
         t_hit = result["t_hit"].numpy().astype(np.float64)
         hit = np.isfinite(t_hit)
@@ -342,7 +366,7 @@ class SceneRenderer:
         return _Hits(
             mask=hit,
             depth=t_hit[hit],
-            points=origin + t_hit[hit, None] * dirs[hit],
+            points=origins[hit] + t_hit[hit, None] * dirs[hit],
             normal=normal,
             face=face,
             material=spec.triangle_material[triangle],
@@ -373,7 +397,112 @@ class SceneRenderer:
             cos_half = np.clip(np.einsum("ni,ni->n", hits.normal, half), 0.0, 1.0)
             irradiance += strength * (np.clip(cos_light, 0.0, None) * lit)[:, None]
             highlight += strength * (specular_weight * cos_half**shininess * lit)[:, None]
+        if spec.environment is not None:
+            box_visible = self._softboxes_visible(hits)
+            irradiance += self._environment_irradiance(hits, box_visible)
+            theta = np.arccos(np.clip(np.einsum("ni,ni->n", hits.normal, view), 0.0, 1.0))
+            reflectance = self._reflectance(torch.from_numpy(theta), hits.material)
+            reflected = self._environment_reflection(hits, view, shininess, box_visible)
+            highlight += (specular_weight * reflectance)[:, None] * reflected
         return albedo * irradiance, highlight * tint
+
+    def _softboxes_visible(self, hits: _Hits) -> np.ndarray:
+        """(M, B) 1 where nothing hides softbox b's centre from hit m (0 with shadows off: none)."""
+        boxes = self.spec.environment.softboxes
+        out = np.ones((hits.points.shape[0], len(boxes)))
+        if self.shadows:
+            for b, box in enumerate(boxes):
+                out[:, b] = self._visible(hits.points + _SHADOW_EPS * hits.face, Light("directional", box.direction, box.color))
+        return out
+
+    def _environment_irradiance(self, hits: _Hits, box_visible: np.ndarray) -> np.ndarray:
+        """(M, 3) the environment's irradiance over pi at the hits (a Lambertian albedo's factor):
+        sky and ground by the fixed sphere quadrature, each softbox as an area light at its centre,
+        both hidden where the scene blocks the way (with ``shadows``)."""
+        env = self.spec.environment
+        dirs = sphere_directions(env.samples)
+        cosines = np.clip(hits.normal @ dirs.T, 0.0, None)  # (M, J)
+        if self.shadows:
+            cosines *= self._open_along(hits.points + _SHADOW_EPS * hits.face, dirs, cosines > 0)
+        total = cosines @ env.background(dirs) * (4.0 / env.samples)  # E / pi = sum L cos (4 pi / J) / pi
+        for b, box in enumerate(env.softboxes):
+            facing = np.clip(hits.normal @ np.asarray(box.direction), 0.0, None) * box_visible[:, b]
+            total += (box.solid_angle / math.pi) * facing[:, None] * np.asarray(box.color)[None, :]
+        return total
+
+    def _environment_reflection(self, hits: _Hits, view: np.ndarray, shininess: np.ndarray,
+                                box_visible: np.ndarray) -> np.ndarray:
+        """(M, 3) environment radiance reflected towards ``view`` through each hit's lobe, before
+        k_s and Fresnel: the lobe's fixed directions (:func:`lobe_directions`) look up the sky and
+        ground, or, where the scene blocks them (or they point into the surface), the blocking
+        surface's albedo times the environment's mean radiance (one diffuse interreflection); a
+        softbox wider than the lobe is among what the directions see, a narrower one is convolved
+        with the lobe in closed form (both Gaussian in angle)."""
+        env = self.spec.environment
+        mirror = 2.0 * np.einsum("ni,ni->n", hits.normal, view)[:, None] * hits.normal - view
+        mirror /= np.linalg.norm(mirror, axis=1, keepdims=True)
+        dirs = lobe_directions(mirror, shininess, _LOBE_SAMPLES)  # (M, K, 3)
+        width2 = lobe_width(shininess) ** 2
+        sampled_box = np.stack([width2 < box.angular_variance for box in env.softboxes], axis=1) \
+            if env.softboxes else np.zeros((len(shininess), 0), dtype=bool)
+        flat = dirs.reshape(-1, 3)
+        seen = env.background(flat)
+        for b, box in enumerate(env.softboxes):
+            seen += np.repeat(sampled_box[:, b], _LOBE_SAMPLES)[:, None] * box.radiance(flat)
+        seen = seen.reshape(dirs.shape)
+        above = np.einsum("nki,ni->nk", dirs, hits.face) > 0
+        blocked = ~above
+        if self.shadows:
+            blocked_colour, hit_mask = self._first_albedo(hits.points + _SHADOW_EPS * hits.face, dirs, above)
+            seen = np.where(hit_mask[..., None], blocked_colour * env.mean_radiance(), seen)
+        seen = np.where(blocked[..., None], 0.0, seen)
+        total = seen.mean(axis=1)
+        for b, box in enumerate(env.softboxes):
+            variance = box.angular_variance + width2
+            angle = np.arccos(np.clip(mirror @ np.asarray(box.direction), -1.0, 1.0))
+            weight = box.solid_angle / (2 * math.pi * variance) * np.exp(-(angle**2) / (2 * variance))
+            weight *= (~sampled_box[:, b]) * box_visible[:, b]
+            total += weight[:, None] * np.asarray(box.color)[None, :]
+        return total
+
+    def _open_along(self, origins: np.ndarray, dirs: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+        """(M, J) 1 where the ray from origin m along the fixed direction j leaves the scene, for
+        the pairs ``wanted`` (M, J) (0 elsewhere)."""
+        m, j = np.nonzero(wanted)
+        out = np.zeros(wanted.shape)
+        for start in range(0, len(m), _RAY_CHUNK):
+            mm, jj = m[start:start + _RAY_CHUNK], j[start:start + _RAY_CHUNK]
+            rays = np.concatenate([origins[mm], dirs[jj]], axis=1).astype(np.float32)
+            out[mm, jj] = ~self._scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
+        return out
+
+    def _first_albedo(self, origins: np.ndarray, dirs: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Albedo (M, K, 3) of the first surface along each ray from origin m along dirs[m, k]
+        for the pairs ``wanted`` (M, K), and (M, K) bool where such a surface was hit."""
+        m, k = np.nonzero(wanted)
+        colour, hit = np.zeros(dirs.shape), np.zeros(wanted.shape, dtype=bool)
+        for start in range(0, len(m), _RAY_CHUNK):
+            mm, kk = m[start:start + _RAY_CHUNK], k[start:start + _RAY_CHUNK]
+            found = self._intersect_rays(origins[mm], dirs[mm, kk])
+            mm, kk = mm[found.mask], kk[found.mask]
+            hit[mm, kk] = True
+            for index, material in enumerate(self.spec.materials):
+                sel = found.material == index
+                colour[mm[sel], kk[sel]] = evaluate_albedo(found.points[sel], material)
+        return colour, hit
+
+    def _reflectance(self, theta: Tensor, material: np.ndarray) -> np.ndarray:
+        """(M,) Fresnel reflectance of unpolarized light, (R_s + R_p) / 2, at zenith ``theta`` (M,)
+        on the materials ``material`` (M,) (as :meth:`_dolp` chooses their optics)."""
+        out = torch.stack(fresnel_reflectance(theta, self.refractive_index)).mean(dim=0).numpy()
+        for index, item in enumerate(self.spec.materials):
+            sel = material == index
+            if not sel.any() or (item.refractive_index is None and not item.is_conductor):
+                continue
+            pair = (fresnel_reflectance_conductor(theta[sel], item.refractive_index, item.extinction) if item.is_conductor
+                    else fresnel_reflectance(theta[sel], item.refractive_index))
+            out[sel] = torch.stack(pair).mean(dim=0).numpy()
+        return out
 
     @staticmethod
     def _light_at(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -402,8 +531,11 @@ class SceneRenderer:
         return (~occluded).astype(np.float64)
 
     def _backdrop(self, dirs: np.ndarray) -> np.ndarray:
-        """(N, 3) dim grey backdrop colour, weakly textured by the world ray direction."""
+        """(N, 3) what a ray that hits nothing sees: the environment, or else a dim grey backdrop
+        weakly textured by the world ray direction."""
         unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        if self.spec.environment is not None:
+            return self.spec.environment.radiance(unit)
         backdrop = Material("backdrop", albedo=(self.spec.background,) * 3, texture=_BACKDROP_TEXTURE)
         return evaluate_albedo(unit, backdrop)
 
@@ -609,7 +741,10 @@ def _meta(spec: SceneSpec, num_views, width, height, seed, noise_std, quantize_b
         "diffuse AoLP = azimuth, specular = azimuth + pi/2",
         "stokes": "s0=(I0+I45+I90+I135)/2, s1=I0-I90, s2=I45-I135; training colour s0/2",
         "shading": "Lambert diffuse + Blinn-Phong specular (white, a metal's tint), world-fixed lights"
+        + (", environment lighting (diffuse irradiance; reflections k_s F(theta) through the lobe)"
+           if spec.environment is not None else "")
         + (", shadow rays" if shadows else ", no shadows"),
+        "environment": None if spec.environment is None else asdict(spec.environment),
         "specular_zenith": "angle between shading normal and view direction",
         "ambient": spec.ambient,
         "background": {"kind": "unpolarized backdrop textured by world ray direction", "level": spec.background,
