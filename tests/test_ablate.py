@@ -341,6 +341,9 @@ def _check_run(folder: Path, variant: str, command: str = "demo") -> dict:
     check_provenance(summary["provenance"], threads=1)
     assert summary["provenance"]["command"].startswith(f"polargs {command} ")  # the grid's, not the worker's
     assert summary["eval"]["normal_region"] == "object"  # the normals of the object the Chamfer measures
+    # the generated scene's own maps (a dataset without them gets them ray-cast from the GT mesh)
+    assert summary["eval"]["depth_source"] == "ground-truth depth maps"
+    assert summary["eval"]["normal_source"] == "ground-truth normal maps"
     figures = summary["figures"]
     for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians",
                 "chamfer_uncapped", "completeness_uncapped", "signed_distance_median"):

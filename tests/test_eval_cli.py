@@ -166,3 +166,67 @@ def test_every_figure_eval_prints_is_named_in_its_help_and_in_the_evaluation_gui
         assert sorted(key for key in keys if not re.search(rf"\b{key}\b", text)) == [], where
     for name in ("many", "few", "grazing"):
         assert name in metrics["chamfer"]["completeness_by_visibility"] and re.search(rf"\({name}\)", help_text)
+
+
+def test_a_dataset_without_depth_maps_gets_its_visibility_and_normals_from_the_gt_mesh(tmp_path, monkeypatch, capsys,
+                                                                                        synthetic_scene):
+    """An SMVP3D/NeRSP folder carries cameras (and normal maps) but no depth maps. `polargs eval --views`
+    of it ray-casts the GT depth from the `--gt` mesh (hidden by the whole scene), and its
+    visible-surface figures equal those the scene folder's own depth maps give (same samples; the
+    generator's maps are the same ray casts, so only samples at a silhouette pixel could differ).
+    A run whose views lack GT normals gets the normal MAE against normals ray-cast from the GT
+    mesh: the stand-in renders the generator's GT normals, so the MAE is the maps' difference,
+    under 0.1 deg."""
+    import open3d as o3d
+
+    import polargs_plugin.service.evaluation as patched
+    from polargs_plugin.data.nersp import write_nersp
+    from polargs_plugin.data.registry import load_views
+    from polargs_plugin.data.scene_format import write_scene
+    from polargs_plugin.metrics import RAY_CAST_SOURCE
+    from polargs_plugin.service import Dataset, Run
+
+    scene = synthetic_scene("glossy_plane_sphere", num_views=4, width=40, height=40)
+    write_scene(scene, tmp_path / "scene")
+    write_nersp(scene.views, tmp_path / "smvp3d")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        views = load_views(tmp_path / "smvp3d")
+    assert all(v.depth_gt is None for v in views)
+    vertices, triangles = scene.object_mesh()
+    centre = vertices.mean(axis=0)
+    pred = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(centre + 0.97 * (vertices - centre)),
+                                     o3d.utility.Vector3iVector(triangles))
+    o3d.io.write_triangle_mesh(str(tmp_path / "pred.ply"), pred)
+    figures = {}
+    for dataset in ("smvp3d", "scene"):
+        out = tmp_path / f"{dataset}.json"
+        assert main(["eval", str(tmp_path / "pred.ply"), "--gt", str(tmp_path / "scene"), "--views",
+                     str(tmp_path / dataset), "--num-samples", "20000", "--quiet", "--out", str(out)]) == 0
+        figures[dataset] = json.loads(out.read_text())
+    cast, own = figures["smvp3d"]["chamfer"], figures["scene"]["chamfer"]
+    assert cast["visibility_classes"]["source"] == RAY_CAST_SOURCE
+    assert own["visibility_classes"]["source"] == "ground-truth depth maps"
+    assert figures["smvp3d"]["occluder"] == str(tmp_path / "scene" / "mesh.ply")
+    assert cast["visible_fraction"] == pytest.approx(own["visible_fraction"], abs=0.005)
+    for key in ("chamfer_visible", "completeness_visible"):
+        assert cast[key] == pytest.approx(own[key], rel=0.005), key
+    for cls in ("many", "few", "grazing"):
+        assert cast["visibility_shares"][cls] == pytest.approx(own["visibility_shares"][cls], abs=0.005), cls
+    assert RAY_CAST_SOURCE in capsys.readouterr().out  # the table says where the visibility came from
+
+    bare = [v.replaced(normal_gt=None) for v in views]
+    model = NormalStandIn({v.name: s.normal_gt for v, s in zip(views, scene.views)})
+    monkeypatch.setattr(patched, "load_run", lambda run_dir, data=None: Run(run_dir, model, Dataset("fake", bare, "fake"), {}))
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    o3d.io.write_triangle_mesh(str(run_dir / "tsdf_mesh.ply"), pred)
+    assert main(["eval", str(run_dir), "--normals", "--quiet"]) == 2
+    assert "no ground-truth normal maps and no --gt mesh" in capsys.readouterr().err
+    assert main(["eval", str(run_dir), "--normals", "--gt", str(tmp_path / "scene"), "--num-samples", "20000",
+                 "--quiet"]) == 0
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["normal_source"] == RAY_CAST_SOURCE and metrics["normal_region"] == "object"
+    assert len(metrics["normal_mae_per_view"]) == 4 and metrics["normal_mae_deg"] < 0.1
+    assert metrics["chamfer"]["visibility_classes"]["source"] == RAY_CAST_SOURCE
+    assert metrics["chamfer"]["chamfer_visible"] == pytest.approx(own["chamfer_visible"], rel=0.005)

@@ -12,7 +12,8 @@ the GT surface (outside positive) tells a mesh that sits inside from one that si
 Where the views carry ground-truth depth maps, the GT points are also sorted by how the training
 views see them (:mod:`polargs_plugin.data.visibility`: seen by many views, by few, only at
 grazing angles): the uncapped completeness of each class and the uncapped Chamfer over the GT
-surface some view sees (``chamfer_visible``) show lost surface that the cap hides.
+surface some view sees (``chamfer_visible``) show lost surface that the cap hides. Views without
+their own GT depth maps (or normals) get the ones ray-cast from the GT mesh (:func:`with_mesh_maps`).
 Distances are in the meshes' own units; bring the prediction into the ground truth's frame and
 scale first.
 """
@@ -20,7 +21,7 @@ scale first.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -48,6 +49,9 @@ __all__ = [
     "sample_surface_with_faces",
     "cull_to_masks",
     "mesh_silhouettes",
+    "mesh_maps",
+    "with_mesh_maps",
+    "RAY_CAST_SOURCE",
     "in_object_region",
     "visible_from_views",
     "signed_distances",
@@ -72,6 +76,11 @@ FSCORE_FRACTION = 0.005
 #: NeuS culling); "object" = predicted points culled to the dilated silhouettes of the GT mesh
 #: (the object) and GT points kept only where some view sees them (default of `polargs eval`).
 REGIONS = ("all", "masks", "object")
+
+#: The source of GT maps that :func:`with_mesh_maps` ray-cast from the GT mesh (the metrics'
+#: ``visibility_classes["source"]`` and ``normal_source``; a dataset's own maps are
+#: "ground-truth depth maps" / "ground-truth normal maps").
+RAY_CAST_SOURCE = "ray-cast from the ground-truth mesh"
 
 MeshLike = o3d.geometry.TriangleMesh | tuple[np.ndarray, np.ndarray]
 
@@ -213,14 +222,41 @@ def _camera(view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return K, w2c, -w2c[:3, :3].T @ w2c[:3, 3]
 
 
-def _first_hit_depths(scene: o3d.t.geometry.RaycastingScene, view: View) -> np.ndarray:
-    """(H, W) camera-z depth of the first hit along each pixel-centre ray, inf where none."""
+def _pixel_rays(view: View) -> np.ndarray:
+    """(H * W, 6) float32 rays (camera centre, world direction) through the pixel centres, row by
+    row; each direction has camera z 1, so a hit's ray parameter t is its camera-z depth."""
     K, w2c, centre = _camera(view)
     u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
     rays_cam = np.stack([u, v, np.ones_like(u)], -1).reshape(-1, 3) @ np.linalg.inv(K).T
-    dirs = rays_cam @ w2c[:3, :3]  # R^T d for row vectors; camera z of d is 1, so t = depth
-    rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], 1).astype(np.float32)
-    return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64).reshape(view.height, view.width)
+    dirs = rays_cam @ w2c[:3, :3]  # R^T d for row vectors
+    return np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], 1).astype(np.float32)
+
+
+def _first_hit_depths(scene: o3d.t.geometry.RaycastingScene, view: View) -> np.ndarray:
+    """(H, W) camera-z depth of the first hit along each pixel-centre ray, inf where none."""
+    t_hit = scene.cast_rays(o3d.core.Tensor(_pixel_rays(view)))["t_hit"].numpy()
+    return t_hit.astype(np.float64).reshape(view.height, view.width)
+
+
+def _seen_hits(
+    mesh: MeshLike, views: Sequence[View], occluder: MeshLike | None = None
+) -> Iterator[tuple[dict[str, np.ndarray], np.ndarray]]:
+    """Per view: the pixel-centre rays' hits on ``mesh`` (open3d ``cast_rays``' arrays, flat, row
+    by row) and the (H, W) bool pixels where ``mesh`` itself is seen: hit, and, with ``occluder``,
+    nothing of it in front (beyond 1e-4 x its bounding-box diagonal)."""
+    scene = _raycasting_scene(mesh)
+    blocker = tolerance = None
+    if occluder is not None:
+        blocker = _raycasting_scene(occluder)
+        vertices, _ = _mesh_arrays(occluder)
+        tolerance = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    for view in views:
+        hits = {key: value.numpy() for key, value in scene.cast_rays(o3d.core.Tensor(_pixel_rays(view))).items()}
+        depth = hits["t_hit"].astype(np.float64).reshape(view.height, view.width)
+        seen = np.isfinite(depth)
+        if blocker is not None:
+            seen &= ~(_first_hit_depths(blocker, view) < depth - tolerance)
+        yield hits, seen
 
 
 def mesh_silhouettes(mesh: MeshLike, views: Sequence[View], occluder: MeshLike | None = None) -> list[np.ndarray]:
@@ -230,20 +266,100 @@ def mesh_silhouettes(mesh: MeshLike, views: Sequence[View], occluder: MeshLike |
     counts only where nothing of the occluder lies in front of ``mesh`` (beyond 1e-4 x its
     bounding-box diagonal): the pixels where ``mesh`` itself is seen.
     """
-    scene = _raycasting_scene(mesh)
-    blocker = tolerance = None
-    if occluder is not None:
-        blocker = _raycasting_scene(occluder)
-        vertices, _ = _mesh_arrays(occluder)
-        tolerance = 1e-4 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    return [seen for _, seen in _seen_hits(mesh, views, occluder)]
+
+
+def _vertex_normals(mesh: MeshLike) -> np.ndarray:
+    """(V, 3) unit vertex normals: the mesh's own (an open3d mesh read from a file that has them),
+    else the area-weighted means of the normals of the triangles around each vertex."""
+    vertices, triangles = _mesh_arrays(mesh)
+    if isinstance(mesh, o3d.geometry.TriangleMesh) and mesh.has_vertex_normals():
+        normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    else:
+        corners = vertices[triangles]
+        cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # 2 x area x normal
+        normals = np.zeros_like(vertices)
+        for i in range(3):
+            np.add.at(normals, triangles[:, i], cross)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+
+def mesh_maps(
+    mesh: MeshLike, views: Sequence[View], occluder: MeshLike | None = None
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ground-truth maps of ``mesh`` in each view, ray cast through the pixel centres: (depth
+    (H, W) float32, camera z; normals (3, H, W) float32, unit, camera frame, facing the camera),
+    both 0 where the view does not see ``mesh`` (missed, or hidden by ``occluder``: the pixels of
+    :func:`mesh_silhouettes`). The normals are the vertex normals (:func:`_vertex_normals`)
+    interpolated at the hit, turned to the camera's side of the hit triangle, as the bundled
+    scenes' generator renders its GT normal maps."""
+    _, triangles = _mesh_arrays(mesh)
+    vertex_normals = _vertex_normals(mesh)
     out = []
-    for view in views:
-        depth = _first_hit_depths(scene, view)
-        seen = np.isfinite(depth)
-        if blocker is not None:
-            seen &= ~(_first_hit_depths(blocker, view) < depth - tolerance)
-        out.append(seen)
+    for view, (hits, seen) in zip(views, _seen_hits(mesh, views, occluder)):
+        rotation = view.world_to_camera.detach().cpu().numpy().astype(np.float64)[:3, :3]
+        flat = seen.reshape(-1)
+        depth = np.where(flat, hits["t_hit"], 0.0).astype(np.float32).reshape(view.height, view.width)
+        uv = hits["primitive_uvs"][flat].astype(np.float64)
+        corners = vertex_normals[triangles[hits["primitive_ids"][flat].astype(np.int64)]]  # (M, 3, 3)
+        normal = (1.0 - uv[:, :1] - uv[:, 1:]) * corners[:, 0] + uv[:, :1] * corners[:, 1] + uv[:, 1:] * corners[:, 2]
+        dirs = _pixel_rays(view)[flat, 3:].astype(np.float64)
+        away = np.einsum("ij,ij->i", hits["primitive_normals"][flat].astype(np.float64), dirs) > 0
+        normal[away] *= -1  # a triangle seen from its back
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        image = np.zeros((view.height * view.width, 3))
+        image[flat] = normal @ rotation.T
+        out.append((depth, np.ascontiguousarray(image.T.reshape(3, view.height, view.width), dtype=np.float32)))
     return out
+
+
+def _maps_source(kind: str, given: int, total: int) -> str:
+    """Where an evaluation's GT ``kind`` maps came from, ``given`` of ``total`` views having their own."""
+    if given == total:
+        return f"ground-truth {kind} maps"
+    if given == 0:
+        return RAY_CAST_SOURCE
+    return f"ground-truth {kind} maps ({given} of {total} views), else {RAY_CAST_SOURCE}"
+
+
+def with_mesh_maps(
+    views: Sequence[View], mesh: MeshLike, occluder: MeshLike | None = None, depth: bool = True, normals: bool = False
+) -> tuple[list[View], dict[str, str]]:
+    """The views, each one without a GT depth map (``depth``) or GT normals (``normals``) given the
+    one :func:`mesh_maps` ray-casts from the GT ``mesh`` (hidden by ``occluder``, e.g. the whole
+    scene with its floor), so that a dataset with a GT mesh and cameras but no GT maps gets the
+    visible-surface figures and the normal MAE. Views that have their maps are kept as they are.
+
+    Returns:
+        ``(views, sources)``; ``sources`` has ``"depth"`` / ``"normals"`` (those asked for): where
+        the maps came from, ``"ground-truth depth maps"`` (every view had its own),
+        :data:`RAY_CAST_SOURCE` (none had) or a mix, as the metrics record it
+        (``visibility_classes["source"]`` of :func:`chamfer_distance`).
+
+    Raises:
+        ValueError: none of the views it ray-casts for sees ``mesh`` (another frame?).
+    """
+    views = list(views)
+    wanted = {"depth": ("depth_gt", "depth", depth), "normals": ("normal_gt", "normal", normals)}
+    missing = {kind: {i for i, v in enumerate(views) if asked and v.stored(field) is None}  # stored: not decoded
+               for kind, (field, _, asked) in wanted.items()}
+    sources = {kind: _maps_source(word, len(views) - len(missing[kind]), len(views))
+               for kind, (_, word, asked) in wanted.items() if asked}
+    todo = sorted(missing["depth"] | missing["normals"])
+    seen_any = False
+    for index, (depth_map, normal_map) in zip(todo, mesh_maps(mesh, [views[i] for i in todo], occluder)):
+        view = views[index]
+        seen_any = seen_any or bool(depth_map.any())
+        changes = {}
+        if index in missing["depth"]:
+            changes["depth_gt"] = torch.from_numpy(depth_map)[None].to(view.device)
+        if index in missing["normals"]:
+            changes["normal_gt"] = torch.from_numpy(normal_map).to(view.device)
+        views[index] = view.replaced(**changes)
+    if todo and not seen_any:
+        raise ValueError(f"with_mesh_maps: none of the {len(todo)} views without GT maps sees the ground-truth mesh "
+                         "(cameras and mesh in different frames?)")
+    return views, sources
 
 
 def in_object_region(
@@ -341,6 +457,7 @@ def chamfer_distance(
     occluder: MeshLike | None = None,
     progress: Callable[[str], None] | None = None,
     visibility_classes: VisibilityClasses | None = None,
+    visibility_source: str = "ground-truth depth maps",
 ) -> dict[str, float | int | str | bool]:
     """DTU-style Chamfer distance, F-score and signed distance between a predicted and a GT mesh.
 
@@ -366,6 +483,9 @@ def chamfer_distance(
         visibility_classes: thresholds of the visibility classes (None: the defaults of
             :class:`~polargs_plugin.data.visibility.VisibilityClasses`); used when every view of
             ``cull_views`` has a ground-truth depth map.
+        visibility_source: where those depth maps came from, recorded as
+            ``visibility_classes["source"]`` (:func:`with_mesh_maps` gives views without their
+            own the ones ray-cast from the GT mesh, and says so).
 
     Returns:
         dict (distances in ``units``):
@@ -385,7 +505,7 @@ def chamfer_distance(
           those), chamfer_visible = (accuracy_uncapped + completeness_visible) / 2,
           visibility_shares and completeness_by_visibility ({many, few, grazing}: each class's
           share of the seen GT samples and its uncapped completeness, NaN for an empty class),
-          visibility_classes (the thresholds).
+          visibility_classes (the thresholds and the depth maps' ``source``).
     """
     step = progress or (lambda name: None)
     region = _resolve_region(region, cull_views)
@@ -412,7 +532,8 @@ def chamfer_distance(
     if with_depth:
         step("visibility classes")
         codes = _visibility_codes(all_gt_points, _face_normals(gt, gt_faces), cull_views, visibility_classes)
-        figures.update(visible_surface_figures(figures["accuracy_uncapped"], to_pred_all, codes, visibility_classes))
+        figures.update(visible_surface_figures(figures["accuracy_uncapped"], to_pred_all, codes, visibility_classes,
+                                               visibility_source))
     return {
         **figures,
         "max_dist": max_dist,
@@ -485,11 +606,13 @@ def _visibility_codes(points: np.ndarray, normals: np.ndarray, views: Sequence[V
 
 
 def visible_surface_figures(
-    accuracy_uncapped: float, to_pred: np.ndarray, codes: np.ndarray, classes: VisibilityClasses | None = None
+    accuracy_uncapped: float, to_pred: np.ndarray, codes: np.ndarray, classes: VisibilityClasses | None = None,
+    source: str = "ground-truth depth maps",
 ) -> dict[str, object]:
     """The visible-surface figures of :func:`chamfer_distance` from the uncapped accuracy, every GT
     sample's distance to the prediction ``to_pred`` (N,) and its visibility class code (N,)
-    (:func:`polargs_plugin.data.visibility.classify_counts`)."""
+    (:func:`polargs_plugin.data.visibility.classify_counts`); ``source``: where the depth maps
+    the codes come from."""
     classes = classes or VisibilityClasses()
     seen = codes != UNSEEN
     completeness = float(to_pred[seen].mean()) if seen.any() else math.nan
@@ -505,7 +628,7 @@ def visible_surface_figures(
         "visibility_shares": {name: float((codes == code).sum() / max(1, seen.sum())) for code, name in enumerate(CLASS_NAMES)},
         "completeness_by_visibility": {name: class_mean(code) for code, name in enumerate(CLASS_NAMES)},
         "visibility_classes": {"many_views": classes.many_views, "grazing_deg": classes.grazing_deg,
-                               "source": "ground-truth depth maps"},
+                               "source": source},
     }
 
 

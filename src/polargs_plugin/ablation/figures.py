@@ -17,7 +17,8 @@ VISIBILITY_CLASSES = ("many", "few", "grazing")
 def chamfer_figures(chamfer: dict[str, Any]) -> dict[str, Any]:
     """The visible-surface figures of a metrics.json ``chamfer`` entry, flat: ``chamfer_visible``,
     ``completeness_visible``, ``visible_fraction``, ``completeness_<class>`` and ``share_<class>``
-    for the classes many, few, grazing (None where the evaluation had no depth maps)."""
+    for the classes many, few, grazing (None where the evaluation had neither GT depth maps nor
+    cameras and a GT mesh to ray-cast them from)."""
     by_class = chamfer.get("completeness_by_visibility") or {}
     shares = chamfer.get("visibility_shares") or {}
     return {
@@ -62,7 +63,11 @@ def run_figures(metrics: dict[str, Any], figures: dict[str, Any], curve: list[di
 
 
 def eval_record(metrics: dict[str, Any], cull: bool, num_samples: int) -> dict[str, Any]:
-    """The summary's ``eval``: how the run was evaluated (culling, samples, the distance cap and F-score threshold)."""
+    """The summary's ``eval``: how the run was evaluated (culling, samples, the distance cap and F-score
+    threshold, the normals' region, and where the GT depth maps and normals came from: the dataset's
+    own or ray-cast from the GT mesh)."""
     chamfer = metrics.get("chamfer") or {}
     return {"culled": cull, "num_samples": num_samples, "max_dist": chamfer.get("max_dist"),
-            "fscore_threshold": chamfer.get("fscore_threshold"), "normal_region": metrics.get("normal_region")}
+            "fscore_threshold": chamfer.get("fscore_threshold"), "normal_region": metrics.get("normal_region"),
+            "depth_source": (chamfer.get("visibility_classes") or {}).get("source"),
+            "normal_source": metrics.get("normal_source")}

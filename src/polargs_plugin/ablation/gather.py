@@ -323,7 +323,7 @@ def _verdict_table(rows: list[dict[str, Any]]) -> str:
     for r in rows:
         verdict = {"better": "better", "worse": "worse", "level": "level (both within 1 %)",
                    "disagree": "**the Chamfer figures disagree**",
-                   "capped only": "capped Chamfer only (no depth maps)"}[r["verdict"]]
+                   "capped only": "capped Chamfer only (no visible-surface Chamfer)"}[r["verdict"]]
         lines.append(f"| {r['scene']} | {r['variant']} | {r['reference']} | {_percent(r['capped'], 1)} | "
                      f"{_percent(r['visible'], 1)} | {_percent(r['normals'], 1)} | {verdict} |")
     return "\n".join(lines)

@@ -196,12 +196,13 @@ def _mesh(cell: Cell, trainer, views: list, tmp: Path) -> None:
 
 
 def _evaluate(cell: Cell, trainer, dataset, summary: dict[str, Any], tmp: Path, eval_gt: Path) -> tuple[dict[str, Any], bool]:
-    """metrics.json, as `polargs eval --gt` (and ``--normals`` where the views have GT normals); (metrics, culled)."""
+    """metrics.json, as `polargs eval --gt --normals` (views without GT depth maps or normals get the
+    ones ray-cast from the GT mesh); (metrics, culled)."""
     from polargs_plugin.service.evaluation import EvalSettings, evaluate, write_metrics
     from polargs_plugin.service.runs import Run
 
     cull = bool(cell.eval.get("cull", True))
-    settings = EvalSettings(gt=eval_gt, normals=any(v.normal_gt is not None for v in dataset.views),
+    settings = EvalSettings(gt=eval_gt, normals=True,
                             num_samples=int(cell.eval.get("num_samples", 1_000_000)),
                             units=cell.eval.get("units", "scene units"), cull=cull, cull_dilation=EVAL_CULL_DILATION)
     metrics = evaluate(tmp, settings, run=Run(tmp, _trained_model(trainer), dataset, summary))

@@ -3,7 +3,7 @@
 Reads the run folders only (summary.json, curves.csv, views.npz, mesh_error.npz, pc_maps.npz)
 through :func:`polargs_plugin.ablation.gather.gather`. Per scene (and init):
 
-- ``metrics_*.png``: Chamfer (capped and, where the views have depth maps, visible-surface) and
+- ``metrics_*.png``: Chamfer (capped and, where the runs have it, visible-surface) and
   normal MAE per variant, bar = mean over seeds, error bar = sample standard deviation, dots = the seeds;
 - ``views_*.png``: two views side by side; rows GT then one per variant; per view rendered colour,
   normal map, depth error against GT depth;
@@ -367,10 +367,12 @@ def _report_head(out: Path, results: dict[str, Any]) -> list[str]:
     lines += [f"Chamfer (accuracy + completeness) / 2 against the GT mesh in {UNITS}, restricted to the observed "
               "object, distances above 5 % of the GT box diagonal dropped (`polargs eval`, docs/evaluation.md); "
               "\"uncapped\": the same means over every point (a missing or sunken part of the mesh shows there); "
-              "\"visible Chamfer\": uncapped, over the GT surface that some training view sees in its GT depth map; "
+              "\"visible Chamfer\": uncapped, over the GT surface that some training view sees in its GT depth map "
+              "(ray-cast from the GT mesh where the dataset has none); "
               "median signed distance of the predicted points to the GT surface (negative = inside); "
               "normal MAE = mean angle between rendered and GT normals inside the GT masks "
-              "of every training view. Mean ± sample standard deviation over seeds; \"vs base\" / \"vs reg\": "
+              "of every training view (GT normals ray-cast from the GT mesh where the dataset has none). "
+              "Mean ± sample standard deviation over seeds; \"vs base\" / \"vs reg\": "
               "relative change of the mean (negative = better). Per-run figures (also accuracy uncapped and the "
               "fractions the cap dropped): results.csv, results.json.", ""]
     return lines + ["## Variants", ""] + [f"- `{v}`: {DESCRIPTIONS[v]}" for v in VARIANTS] + [""]

@@ -40,16 +40,19 @@ figures, one row each (their keys in metrics.json in brackets):
   signed distance (outside +)  median and mean signed distance of the predicted samples to the GT
                                surface (negative: the mesh sits inside), share inside
                                [signed_distance_median, signed_distance_mean, inside_fraction]
-  visible surface              where the views carry GT depth maps (generated scenes do): the uncapped
-                               Chamfer over the GT surface some view sees, its completeness, and the
-                               share of GT seen [chamfer_visible, completeness_visible, visible_fraction]
+  visible surface              where cameras are known: the uncapped Chamfer over the GT surface some
+                               view sees in its GT depth map (ray-cast from the GT mesh where the
+                               dataset has none), its completeness, and the share of GT seen
+                               [chamfer_visible, completeness_visible, visible_fraction]
   completeness by view         uncapped completeness of the GT seen well (incidence below 70 deg) by
                                4 views or more (many), by 1-3 (few), or only at grazing angles
                                (grazing), with each class's share of the seen GT
                                [completeness_by_visibility, visibility_shares]
   samples (pred / GT)          samples compared [num_pred_points, num_gt_points]
   normal MAE                   with --normals: mean angle in degrees between rendered and GT normals,
-                               per view then averaged [normal_mae_deg, normal_mae_per_view, normal_region]
+                               per view then averaged; GT normals ray-cast from the --gt mesh where the
+                               dataset has none [normal_mae_deg, normal_mae_per_view, normal_region,
+                               normal_source]
 Results are printed and written to metrics.json.
 """
 
@@ -69,7 +72,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("target", type=Path, metavar="RUN_DIR_or_MESH", help="run folder or mesh file")
     parser.add_argument("--gt", type=Path, help="ground-truth mesh file, or a folder holding gt_mesh.ply or mesh.ply")
-    parser.add_argument("--normals", action="store_true", help="also compute normal MAE (needs a run folder and GT normals)")
+    parser.add_argument("--normals", action="store_true",
+                        help="also compute normal MAE (needs a run folder, and GT normals or --gt)")
     parser.add_argument("--region", choices=REGIONS, default=None,
                         help="object: predicted points inside the GT's dilated silhouettes, GT points some view sees "
                         "(default when cameras are known); masks: predicted points inside the views' dilated masks; "
@@ -115,7 +119,8 @@ def format_table(metrics: dict[str, Any]) -> str:
                          f"mean {cd['signed_distance_mean']:+.4g}, {100 * cd['inside_fraction']:.1f} % inside"))
         if "chamfer_visible" in cd:
             rows.append(("visible surface", f"Chamfer {cd['chamfer_visible']:.5g} {unit} uncapped, completeness "
-                         f"{cd['completeness_visible']:.5g} over the {100 * cd['visible_fraction']:.1f} % of GT some view sees"))
+                         f"{cd['completeness_visible']:.5g} over the {100 * cd['visible_fraction']:.1f} % of GT some view sees"
+                         f" ({cd.get('visibility_classes', {}).get('source', 'ground-truth depth maps')})"))
             rows.append(("completeness by view", ", ".join(
                 f"{name} {_figure(cd['completeness_by_visibility'][name])} ({100 * share:.0f} %)"
                 for name, share in cd["visibility_shares"].items())))
@@ -123,7 +128,7 @@ def format_table(metrics: dict[str, Any]) -> str:
     if metrics.get("normal_mae_deg") is not None:
         region = metrics.get("normal_region", "masks")
         rows.append(("normal MAE", f"{metrics['normal_mae_deg']:.3f} deg over {len(metrics['normal_mae_per_view'])} views "
-                     f"(region {region})"))
+                     f"(region {region}, {metrics.get('normal_source', 'ground-truth normal maps')})"))
     if not rows:
         return ""
     width = max(len(name) for name, _ in rows)

@@ -30,8 +30,8 @@ class EvalSettings:
     Attributes:
         gt: ground-truth mesh file, or a folder holding one of :data:`GT_MESH_NAMES`; None: no
             Chamfer distance.
-        normals: also the normal MAE of the rendered normals against the dataset's GT normal maps
-            (needs a run).
+        normals: also the normal MAE of the rendered normals against the dataset's GT normal maps,
+            or, for views without them, the normals ray-cast from ``gt`` (needs a run).
         region: ``object`` (predicted points inside the GT mesh's dilated silhouettes, GT points
             some view sees), ``masks`` (predicted points inside the views' dilated masks) or
             ``all``; None (default): ``object`` when cameras are known, else ``all``.
@@ -131,17 +131,47 @@ def _check_request(target: Path, settings: EvalSettings, is_run: bool) -> str:
     return region
 
 
+@dataclass(frozen=True)
+class _GroundTruth:
+    """The GT meshes of an evaluation: the object, and the whole scene that may hide it (or None)."""
+
+    path: Path
+    mesh: Any
+    scene_path: Path | None
+    scene: Any
+
+    @classmethod
+    def read(cls, gt: Path) -> _GroundTruth:
+        from polargs_plugin.mesh import read_mesh
+
+        path, scene_path = gt_meshes(Path(gt))
+        return cls(path, read_mesh(path), scene_path, None if scene_path is None else read_mesh(scene_path))
+
+    def fill(self, views: Sequence[View], depth: bool, normals: bool) -> tuple[list[View], dict[str, str]]:
+        """:func:`~polargs_plugin.metrics.with_mesh_maps`: the maps the views lack, ray-cast from the
+        GT mesh, hidden by the whole scene."""
+        from polargs_plugin.metrics import with_mesh_maps
+
+        return with_mesh_maps(views, self.mesh, self.scene, depth=depth, normals=normals)
+
+
+def _ray_cast(sources: dict[str, str]) -> bool:
+    """Whether some of the maps of :meth:`_GroundTruth.fill` were ray-cast (the whole scene then hid the object)."""
+    from polargs_plugin.metrics import RAY_CAST_SOURCE
+
+    return any(RAY_CAST_SOURCE in source for source in sources.values())
+
+
 def _chamfer(mesh_path: Path, settings: EvalSettings, region: str, views: Sequence[View] | None,
-             progress: bool) -> tuple[dict[str, Any], Any, Any]:
-    """(the chamfer entry, the GT mesh, the occluder mesh or None)."""
+             truth: _GroundTruth, depth_source: str | None, progress: bool) -> dict[str, Any]:
+    """The chamfer entry; ``depth_source``: where the views' GT depth maps came from (None: their own)."""
     from tqdm import tqdm
 
     from polargs_plugin.mesh import read_mesh
     from polargs_plugin.metrics import chamfer_distance
 
-    gt_path, occluder_path = gt_meshes(Path(settings.gt))
-    pred, gt = read_mesh(mesh_path), read_mesh(gt_path)
-    occluder = read_mesh(occluder_path) if occluder_path is not None and region == "object" else None
+    pred, gt = read_mesh(mesh_path), truth.mesh
+    occluder = truth.scene if region == "object" else None
     cull_views = None
     if region != "all":
         cull_views = list(views)
@@ -159,13 +189,10 @@ def _chamfer(mesh_path: Path, settings: EvalSettings, region: str, views: Sequen
             pred, gt, num_samples=settings.num_samples, seed=settings.seed, max_dist=settings.max_dist,
             fscore_threshold=settings.fscore_threshold, cull_views=cull_views,
             cull_dilation_px=settings.cull_dilation, units=settings.units, region=region,
-            occluder=occluder, progress=step,
+            occluder=occluder, progress=step, visibility_source=depth_source or "ground-truth depth maps",
         )
         bar.update(bar.total - bar.n)
-    entry = {"chamfer": chamfer, "mesh": os.path.abspath(mesh_path), "gt": os.path.abspath(gt_path)}
-    if occluder is not None:
-        entry["occluder"] = os.path.abspath(occluder_path)
-    return entry, gt, occluder
+    return {"chamfer": chamfer, "mesh": os.path.abspath(mesh_path), "gt": os.path.abspath(truth.path)}
 
 
 def evaluate(target: Path, settings: EvalSettings, run: Run | None = None, progress: bool = False) -> dict[str, Any]:
@@ -180,7 +207,11 @@ def evaluate(target: Path, settings: EvalSettings, run: Run | None = None, progr
 
     Returns:
         ``{"target", "chamfer": {...}, "mesh", "gt", "occluder"?, "normal_mae_deg",
-        "normal_mae_per_view", "normal_region"}`` (the parts asked for), as ``metrics.json`` holds it.
+        "normal_mae_per_view", "normal_region", "normal_source"}`` (the parts asked for), as
+        ``metrics.json`` holds it. Views without GT depth maps (or, for the normal MAE, GT normals)
+        get the ones ray-cast from the GT mesh, hidden by the whole-scene mesh
+        (:func:`~polargs_plugin.metrics.with_mesh_maps`); ``chamfer["visibility_classes"]["source"]``
+        and ``normal_source`` say where the maps came from.
 
     Raises:
         PolarInputError: naming the file: nothing to evaluate, a missing mesh or GT, no GT normals.
@@ -195,33 +226,47 @@ def evaluate(target: Path, settings: EvalSettings, run: Run | None = None, progr
     if settings.views is not None:
         views = load_dataset(str(settings.views)).views
     metrics: dict[str, Any] = {"target": os.path.abspath(target)}  # valid from any folder
-    gt = occluder = None
-    if settings.gt is not None:
-        entry, gt, occluder = _chamfer(target / MESH_NAME if is_run else target, settings, region, views, progress)
-        metrics.update(entry)
+    truth = None if settings.gt is None else _GroundTruth.read(settings.gt)
+    normal_views, sources = (run.views if settings.normals else None), {}
+    if truth is not None:
+        # views without GT depth maps (or normals) get the ones ray-cast from the GT mesh: the
+        # visible-surface figures and the normal MAE need them
+        if views is not None and region != "all":
+            shared = settings.normals and settings.views is None  # the run's views for both
+            views, sources = truth.fill(views, depth=True, normals=shared)
+            normal_views = views if shared else normal_views
+        if normal_views is not None and "normals" not in sources:
+            normal_views, more = truth.fill(normal_views, depth=False, normals=True)
+            sources.update(more)
+        metrics.update(_chamfer(target / MESH_NAME if is_run else target, settings, region, views, truth,
+                                sources.get("depth"), progress))
+        if truth.scene is not None and (region == "object" or _ray_cast(sources)):
+            metrics["occluder"] = os.path.abspath(truth.scene_path)
     if settings.normals:
-        metrics.update(_normals(target, run, settings, region, gt, occluder, progress))
+        metrics.update(_normals(target, run.model, normal_views, sources.get("normals"), region, truth, progress))
     return metrics
 
 
-def _normals(target: Path, run: Run, settings: EvalSettings, region: str, gt: Any, occluder: Any,
-             progress: bool) -> dict[str, Any]:
+def _normals(target: Path, model: Any, views: Sequence[View], normal_source: str | None, region: str,
+             truth: _GroundTruth | None, progress: bool) -> dict[str, Any]:
+    """The normal MAE entries; ``normal_source``: where the views' GT normals came from (None: their own)."""
     from polargs_plugin.metrics import mesh_silhouettes
 
-    with_gt = [v for v in run.views if v.normal_gt is not None]
+    with_gt = [v for v in views if v.normal_gt is not None]
     if not with_gt:
-        source = getattr(run.views[0], "source", "") or str(target) if run.views else str(target)
-        raise PolarInputError(source, "--normals: the dataset has no ground-truth normal maps "
-                              "(docs/readers.md lists which readers load them)")
+        source = getattr(views[0], "source", "") or str(target) if views else str(target)
+        raise PolarInputError(source, "--normals: the dataset has no ground-truth normal maps and no --gt mesh to "
+                              "ray-cast them from (docs/readers.md lists which readers load them)")
     object_pixels = None
-    if settings.gt is not None and region == "object":
+    if truth is not None and region == "object":
         # the same object as Chamfer's: a support plane in the masks (and GT normal maps) is left out
-        object_pixels = mesh_silhouettes(gt, with_gt, occluder)
-    per_view = normal_errors(run.model, with_gt, progress, object_pixels)
+        object_pixels = mesh_silhouettes(truth.mesh, with_gt, truth.scene)
+    per_view = normal_errors(model, with_gt, progress, object_pixels)
     if not per_view:
         raise PolarInputError(target, "--normals: no view has ground-truth normals inside its mask")
     return {"normal_mae_per_view": per_view, "normal_mae_deg": sum(per_view.values()) / len(per_view),
-            "normal_region": "masks" if object_pixels is None else "object"}
+            "normal_region": "masks" if object_pixels is None else "object",
+            "normal_source": normal_source or "ground-truth normal maps"}
 
 
 def metrics_path(target: Path) -> Path:
