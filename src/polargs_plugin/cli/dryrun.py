@@ -22,7 +22,9 @@ The trainer's CUDA extensions are replaced by CPU stand-ins and its CUDA request
 in the dry run's own processes only: nothing is written into the checkout. The trainer reads a
 small bundled scene exported as COLMAP input; its schedule is shrunk through its own arguments
 (iterations, densification interval and window, checkpoint) and Dense's through POLARGS_CONFIG.
-Arguments after -- go to train.py after the dry run's own. One line per check, then the exit
+Arguments after -- go to train.py after the dry run's own. Modules the trainer imports that this
+Python lacks are named before anything runs, all in one line with the command that installs them
+(pytorch3d.transforms is served where pytorch3d is missing). One line per check, then the exit
 status: 0 all passed, 1 a check failed, 2 an input error. See docs/adapters/dryrun.md.
 """
 

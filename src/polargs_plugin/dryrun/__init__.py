@@ -8,6 +8,8 @@ iterations on a small scene, with CPU stand-ins of its CUDA extensions (docs/ada
 - :mod:`.probe`: what a dry run watches inside the trainer (losses, step times, per-Gaussian
   state after every densification, the checkpoint);
 - :mod:`.trainers`: per trainer, its stand-ins and how its schedule is shrunk;
+- :mod:`.requirements`: the modules a checkout's training script requires that the environment
+  lacks, found before any run;
 - :mod:`.launch`: the process that runs one ``train.py`` with all of the above installed.
 
 ``polargs dryrun`` (:mod:`polargs_plugin.service.dryrun`) starts that process twice, patched and

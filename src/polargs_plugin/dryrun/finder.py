@@ -4,6 +4,8 @@
 diff_gaussian_rasterization`` (or ``from simple_knn._C import distCUDA2``) gets the stand-in module
 named in its table, whatever is installed, and nothing is written anywhere. A name whose
 sub-modules are also in the table is given a ``__path__`` so that ``import a.b`` works.
+:func:`is_installed` says whether a module is importable from the environment itself, any
+stand-in finder aside.
 
 :func:`install_attributes` replaces single attributes of installed packages (gsplat's
 ``rasterization``), in the process's imported modules only.
@@ -18,7 +20,7 @@ import sys
 from types import ModuleType
 from typing import Mapping, Sequence
 
-__all__ = ["StandinFinder", "install_standins", "install_attributes"]
+__all__ = ["StandinFinder", "install_standins", "install_attributes", "is_installed"]
 
 
 class _AliasLoader(importlib.abc.Loader):
@@ -61,6 +63,21 @@ def install_standins(table: Mapping[str, str]) -> StandinFinder:
     finder = StandinFinder(table)
     sys.meta_path.insert(0, finder)
     return finder
+
+
+def is_installed(name: str) -> bool:
+    """Whether the top-level module ``name`` is importable here without a :class:`StandinFinder`
+    (the finders of ``sys.meta_path`` asked in turn, the stand-in finders skipped; nothing imported)."""
+    for finder in sys.meta_path:
+        find_spec = getattr(finder, "find_spec", None)
+        if isinstance(finder, StandinFinder) or find_spec is None:
+            continue
+        try:
+            if find_spec(name, None) is not None:
+                return True
+        except (ImportError, ValueError):
+            continue
+    return False
 
 
 def _resolve(path: str) -> tuple[ModuleType, str]:

@@ -2,7 +2,8 @@
 --checkout DIR --script FILE --report FILE [--model-path DIR] -- <train.py arguments>``.
 
 It maps CUDA to the CPU (:mod:`.cuda_cpu`), serves the trainer's CUDA extensions from the
-stand-ins (:mod:`.finder`; for gsplat also single attributes of the installed package), puts the
+stand-ins (:mod:`.finder`; for gsplat also single attributes of the installed package; where
+pytorch3d is not installed, ``pytorch3d.transforms`` too), puts the
 checkout first on ``sys.path``, installs the probe (:class:`.probe.Probe` on the checkout's
 ``GaussianModel``, or :class:`.probe_gsplat.GsplatProbe` on gsplat's strategies), runs ``FILE`` as
 ``__main__`` with the given arguments, checks the checkpoint and writes the probe's report (JSON)
@@ -23,7 +24,7 @@ from typing import Sequence
 from polargs_plugin.dryrun import cuda_cpu
 from polargs_plugin.dryrun.finder import install_attributes, install_standins
 from polargs_plugin.dryrun.probe import Probe, RunProbe, describe_error
-from polargs_plugin.dryrun.trainers import TRAINERS
+from polargs_plugin.dryrun.trainers import TRAINERS, served_modules
 from polargs_plugin.io import atomic_write
 
 __all__ = ["main"]
@@ -52,7 +53,7 @@ def run(trainer: str, checkout: Path, script: Path, model_path: Path | None, arg
     """Run ``script`` with everything installed; returns the report (also when it failed)."""
     spec = TRAINERS[trainer]
     cuda_cpu.install()
-    install_standins(spec.standins)
+    install_standins(served_modules(spec))
     sys.path.insert(0, str(checkout.resolve()))
     finished = False
     probe = _probe(spec.family, model_path)

@@ -4,7 +4,9 @@ Each :class:`TrainerSpec` names the upstream module names the trainer imports (s
 stand-ins), the attributes of installed packages replaced by stand-ins (gsplat's CUDA entry
 points), the command-line arguments of its training script that shrink its schedule so that,
 within a few hundred iterations, its own densification and pruning run several times, and the
-Dense window of the PolarGS settings (``POLARGS_CONFIG``) that overlaps it.
+Dense window of the PolarGS settings (``POLARGS_CONFIG``) that overlaps it. :data:`FALLBACKS`
+are served to every trainer, but only where the package they stand in for is not installed
+(``pytorch3d.transforms``).
 """
 
 from __future__ import annotations
@@ -13,12 +15,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from polargs_plugin.dryrun.finder import is_installed
+
 __all__ = ["TrainerSpec", "TRAINERS", "schedule_arguments", "gsplat_arguments", "trainer_arguments", "dense_settings",
-           "STANDINS"]
+           "STANDINS", "FALLBACKS", "served_modules"]
 
 STANDINS = "polargs_plugin.dryrun.standins"
 
 _KNN = {"simple_knn": f"{STANDINS}.simple_knn", "simple_knn._C": f"{STANDINS}.simple_knn"}
+
+#: Pure-Python packages a trainer imports that a dry run serves only where they are not installed:
+#: top-level package -> the stand-ins of it and its sub-modules (:func:`served_modules`).
+FALLBACKS: dict[str, dict[str, str]] = {
+    "pytorch3d": {"pytorch3d": f"{STANDINS}.pytorch3d_transforms",
+                  "pytorch3d.transforms": f"{STANDINS}.pytorch3d_transforms"},
+}
 
 _GSPLAT_MODULES = {
     "gsplat.cuda._backend": f"{STANDINS}.gsplat_backend",
@@ -117,6 +128,16 @@ TRAINERS: dict[str, TrainerSpec] = {
         ),
     )
 }
+
+
+def served_modules(spec: TrainerSpec) -> dict[str, str]:
+    """Upstream module name -> stand-in of everything a dry run of ``spec`` serves: its CUDA
+    extensions' stand-ins, and the :data:`FALLBACKS` of packages this environment lacks."""
+    table = dict(spec.standins)
+    for package, modules in FALLBACKS.items():
+        if not is_installed(package):
+            table.update(modules)
+    return table
 
 
 def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> list[str]:

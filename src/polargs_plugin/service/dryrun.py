@@ -1,6 +1,7 @@
 """A dry run of a patched upstream trainer (``polargs dryrun``; docs/adapters/dryrun.md).
 
-:func:`dry_run` makes a small scene the trainer reads (``generate --export colmap``, cached in
+:func:`dry_run` first checks that the environment has every module the trainer's script
+requires (:mod:`polargs_plugin.dryrun.requirements`), then makes a small scene the trainer reads (``generate --export colmap``, cached in
 the work folder), writes the PolarGS settings that shrink Dense's window to the run, then starts
 :mod:`polargs_plugin.dryrun.launch` twice with the trainer's own ``train.py`` and a shrunk
 schedule: once patched (the checkout's ``train.py``) and once unpatched (a copy without the marked
@@ -21,7 +22,8 @@ from pathlib import Path
 from statistics import mean
 from typing import Callable, Sequence
 
-from polargs_plugin.dryrun.trainers import TRAINERS, dense_settings, trainer_arguments
+from polargs_plugin.dryrun.requirements import install_command, missing_modules
+from polargs_plugin.dryrun.trainers import TRAINERS, dense_settings, served_modules, trainer_arguments
 from polargs_plugin.io import PolarInputError, atomic_write, write_json
 from polargs_plugin.kit.patching import is_marked, strip_marked
 from polargs_plugin.service.provenance import provenance
@@ -117,7 +119,17 @@ def _train_script(checkout: Path, trainer: str) -> tuple[Path, str]:
         adapter = spec.adapter
         raise PolarInputError(script, f"is not patched: run `python adapters/{adapter}/patch.py {checkout}` first")
     _check_compiles(script, text)
+    _check_imports(checkout, script, trainer)
     return script, text
+
+
+def _check_imports(checkout: Path, script: Path, trainer: str) -> None:
+    """Refuse a checkout whose training script requires modules this environment lacks, naming
+    them all in one line with the command that installs them: a run would stop at the first."""
+    missing = missing_modules(checkout, script, served_modules(TRAINERS[trainer]))
+    if missing:
+        raise PolarInputError(checkout, f"{script.name} imports modules this environment lacks: {', '.join(missing)}"
+                                        f" — install them with: {install_command(missing)}")
 
 
 def _check_compiles(script: Path, text: str) -> None:
@@ -194,7 +206,8 @@ def dry_run(request: DryRunRequest, progress: Callable[[str], None] | None = Non
 
     Raises:
         PolarInputError: an unknown trainer, no ``train.py``, an unpatched one or one Python cannot
-            compile (naming its file and line), too few iterations.
+            compile (naming its file and line), one that requires modules this environment lacks
+            (naming them all and the command that installs them), too few iterations.
     """
     say = progress or (lambda message: None)
     # the runs start in the checkout: relative paths would be read from there

@@ -12,5 +12,9 @@ upstream module                         trainer                         stand-in
 ``diff_plane_rasterization``            PGSR de24f1a                    :mod:`.plane`
 ``diff_surfel_rasterization``           2DGS 1920a23                    :mod:`.surfel`
 ``simple_knn._C``                       all of them                     :mod:`.simple_knn`
+``pytorch3d.transforms``                PGSR de24f1a                    :mod:`.pytorch3d_transforms`
 ======================================  ==============================  =======================
+
+``pytorch3d.transforms`` is no CUDA extension but pytorch3d has no wheels for torch 2.x: it is
+served only where pytorch3d is not installed (:data:`..trainers.FALLBACKS`).
 """
