@@ -137,6 +137,7 @@ BAD_VALUES = [
 # (root, dotted path, a value outside the field's Literal, the allowed values as the message lists them).
 BAD_MODES = [
     ("polar", "correction.intermediate_dolp", "literal", "'none', 'specular', 'overexposed', 'by_saturation'"),
+    ("polar", "correction.overexposed_rule", "clipped", "'saturated', 'paper'"),
     ("polar", "densify.patchmatch.azimuth_model", "ortho", "'orthographic', 'perspective'"),
     ("polar", "densify.patchmatch.ncc_backend", "cuda", "'auto', 'torch', 'numba'"),
     ("polar", "densify.filters.azimuth_model", "weak", "'orthographic', 'perspective'"),

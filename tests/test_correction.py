@@ -17,6 +17,7 @@ from polargs_plugin.correction import (
     reflective_masks,
     whiten_features,
 )
+from polargs_plugin.optics.stokes import intensities_from_stokes
 
 
 def _stokes(s0, s1, s2):
@@ -211,7 +212,9 @@ def test_compute_polar_maps_small_scene():
     stokes = _scene_stokes()
     mask = torch.ones(1, 5, 5, dtype=torch.bool)
     mask[:, :, 0] = False
-    maps = compute_polar_maps(stokes, mask, CorrectionConfig())
+    # The paper's rules: the specular pixel's red angle image exceeds 1 here, which the default
+    # rule (overexposed = clipped) would call overexposed.
+    maps = compute_polar_maps(stokes, mask, CorrectionConfig(overexposed_rule="paper"))
     spec = torch.zeros(1, 5, 5, dtype=torch.bool)
     spec[0, 1, 1] = True
     over = torch.zeros(1, 5, 5, dtype=torch.bool)
@@ -229,6 +232,25 @@ def test_compute_polar_maps_small_scene():
     assert bool(maps.extras["i_chro_valid"][0, 3, 3])
     assert torch.allclose(maps.i_chro[:, 3, 3], torch.tensor([0.6, 0.4, 0.2]), atol=1e-6)
     assert torch.allclose(maps.intensity, stokes[0] / 2)
+
+
+def test_by_default_overexposed_means_clipped_whatever_the_dolp_and_bright_matte_is_not():
+    # Column 0: clipped (some channel of some angle at 1), DoLP 0.2 (a partly clipped highlight);
+    # column 1: a light matte surface, bright (peak 0.85 > 160/255) and unpolarized, not clipped;
+    # column 2: an unclipped polarized highlight (DoLP 0.5, peak 0.9); column 3: dim diffuse.
+    half_s0 = torch.tensor([0.95, 0.85, 0.6, 0.3])[None, None, :].expand(3, 1, 4).clone()
+    dolp = torch.tensor([0.2, 0.0, 0.5, 0.02])[None, None, :]
+    s0 = 2 * half_s0
+    stokes = torch.stack([s0, s0 * dolp, torch.zeros_like(s0)])
+    angles = intensities_from_stokes(stokes)
+    assert float(angles[:, :, 0, 0].max()) >= 1.0 and float(angles[:, :, 0, 1:].max()) < 254 / 255
+    maps = compute_polar_maps(stokes, None, CorrectionConfig())
+    assert maps.overexposed_mask[0, 0].tolist() == [True, False, False, False]
+    assert maps.specular_mask[0, 0].tolist() == [False, False, True, False]
+    paper = compute_polar_maps(stokes, None, CorrectionConfig(overexposed_rule="paper"))
+    # The paper's rule: the bright matte pixel is "overexposed" (DoLP <= 0.1, bright); the
+    # partly clipped one falls between the DoLP rules and goes by saturation.
+    assert paper.overexposed_mask[0, 0].tolist() == [True, True, False, False]
 
 
 def test_compute_polar_maps_disabled_and_bad_shape():

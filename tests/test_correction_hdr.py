@@ -64,11 +64,19 @@ def test_rendered_metal_highlight_has_the_dolp_of_a_copper_pan():
 
 def test_default_assigns_a_metal_highlight_and_paper_literal_misses_its_rim():
     stokes, mask, lobe = render_metal_highlight()
-    maps = compute_polar_maps(stokes, mask, CorrectionConfig())
+    maps = compute_polar_maps(stokes, mask, CorrectionConfig(overexposed_rule="paper"))
     peak = maps.extras["peak_intensity"]
     highlight = mask & (lobe > 0.1) & (peak >= 160 / 255)  # bright and visibly specular
     assigned = maps.specular_mask | maps.overexposed_mask
     assert float(assigned[highlight].float().mean()) > 0.99
+    # The default rule: the same for every saturated or visibly polarized highlight pixel; the
+    # few bright, unclipped ones with DoLP <= 0.1 keep their own colour (no mask).
+    default = compute_polar_maps(stokes, mask, CorrectionConfig())
+    s0, s1, s2 = stokes.mean(1, keepdim=True).unbind(0)
+    polarized = torch.hypot(s1, s2) / s0 > 0.1
+    kept = highlight & (default.extras["saturated"] | polarized)
+    assert bool((default.specular_mask | default.overexposed_mask)[kept].all())
+    assert not (default.specular_mask | default.overexposed_mask)[highlight & ~kept].any()
     # Saturated pixels (some angle image above the white level: their colour is clipped) take the
     # donors' colour (overexposed); the unsaturated bright rim takes I_diff (specular).
     saturated = maps.extras["saturated"]
@@ -136,7 +144,7 @@ def test_pixels_above_the_white_level_are_never_i_chro_donors():
     dolp[7, 11] = 0.05
     s0 = 2 * half_s0
     stokes = torch.stack([s0, s0 * dolp, torch.zeros_like(s0)])
-    maps = compute_polar_maps(stokes, None, CorrectionConfig())
+    maps = compute_polar_maps(stokes, None, CorrectionConfig(overexposed_rule="paper"))
     assert bool(maps.overexposed_mask[0, 5:10, 5:10].all())  # the core counts as 255: bright
     assert bool(maps.overexposed_mask[0, 7, 11]) and bool(maps.extras["i_chro_valid"][0, 7, 11])
     i_chro = maps.i_chro[:, 7, 11]

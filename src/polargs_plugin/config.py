@@ -44,6 +44,7 @@ __all__ = [
     "AzimuthModel",
     "NccBackend",
     "IntermediateDolp",
+    "OverexposedRule",
     "at_least",
     "above",
     "within",
@@ -78,6 +79,9 @@ NccBackend = Literal["auto", "torch", "numba"]
 #: What becomes of bright pixels whose DoLP lies in neither reflective range (docs/choices.md
 #: "Between the DoLP rules").
 IntermediateDolp = Literal["none", "specular", "overexposed", "by_saturation"]
+#: Which pixels the overexposed mask holds (docs/choices.md "What overexposed means"): the
+#: clipped ones, or the paper's bright and weakly polarized ones.
+OverexposedRule = Literal["saturated", "paper"]
 
 
 def polar_schedule_factor(train_factor: float) -> float:
@@ -355,6 +359,13 @@ class CorrectionConfig(CheckedConfig):
             ``"by_saturation"`` (saturated -> overexposed, otherwise specular), ``"specular"``,
             ``"overexposed"`` or ``"none"`` (the paper read literally: no mask). Default
             ``"by_saturation"``.
+        overexposed_rule: which pixels are overexposed (docs/choices.md "What overexposed
+            means"): ``"saturated"``, those the sensor clipped (some channel of some angle image
+            at ``pri_saturation * white_level``), whatever their DoLP, and a saturated pixel is
+            never specular; ``"paper"``, DoLP in ``overexposed_dolp`` and brightness in
+            ``intensity_range`` (with ``intermediate_dolp``), which also takes in bright,
+            weakly polarized pixels the sensor did not clip (a light-coloured matte surface).
+            Default ``"saturated"``.
         stokes_tolerance: noise allowance, in units of s0 times ``white_level``, for s0 < 0 and
             sqrt(s1^2 + s2^2) > s0; beyond it a pixel counts as physically impossible
             (docs/choices.md "Impossible Stokes"). Every pixel is projected onto the physical
@@ -375,6 +386,7 @@ class CorrectionConfig(CheckedConfig):
     rho_d: float | None = field(default=None, metadata=above(0))
     white_level: float = field(default=1.0, metadata=above(0))
     intermediate_dolp: IntermediateDolp = "by_saturation"
+    overexposed_rule: OverexposedRule = "saturated"
     stokes_tolerance: float = field(default=0.02, metadata=at_least(0))
     max_impossible_fraction: float = field(default=0.05, metadata=within(0, 1))
 
@@ -415,6 +427,30 @@ class LossConfig(CheckedConfig):
             nothing, or everything), or None: L_n stops. Default 10.
         use_ref: L_ref on (with ``correction.enabled``). Default True.
         use_normal: L_n on (with Dense, which provides N_opt). Default True.
+        use_polar_normal: where a view's N_opt is invalid (PatchMatch confirmed nothing there:
+            under-sides, recesses seen by few cameras), L_n's target is the view's own
+            single-view polarimetric normal (azimuth from the AoLP, zenith from the diffuse DoLP,
+            ambiguities resolved by the rendered normal; ``optics.single_view_normals``,
+            docs/choices.md "Single-view polarimetric normals"), in the azimuth model of
+            ``densify.patchmatch.azimuth_model``. Active only with L_n (``use_normal``, Dense on,
+            once the view has an N_opt, on L_n's schedule), on pixels where the render is opaque
+            (``densify.alpha_threshold``) and inside the view's mask. Default False: it has not
+            been shown to help yet (the ablation decides).
+        alpha_polar_normal: weight of that term (its pixels weigh ``alpha_polar_normal / (H W)``
+            as L_n's weigh ``alpha_normal / (H W)``); >= 0. Default 0.1, half of ``alpha_normal``'s
+            synthetic value: one view's evidence, whose zenith rests on an assumed refractive
+            index, is weaker than a normal confirmed by several views.
+        polar_normal_min_dolp: DoLP below which the AoLP is taken for noise and a pixel gets no
+            single-view target; in [0, 1]. Default 0.02 (a diffuse surface of index 1.5 seen at
+            32 degrees; an AoLP error of about 7 degrees for a DoLP error of 0.005).
+        polar_normal_zenith_min_dolp: DoLP from which the zenith is read from the diffuse DoLP;
+            below it, and on PC's specular and overexposed pixels, on pixels whose light the
+            rendered normal calls specular, and at or above the diffuse maximum, only the azimuth
+            is constrained; in [0, 1]. Default 0.05 (47 degrees at index 1.5, where a DoLP error
+            of 0.005 moves the zenith by 1.8 degrees, against 3.3 at a DoLP of 0.02).
+        polar_normal_refractive_index: refractive index n whose diffuse DoLP is inverted for the
+            zenith; > 1. Default 1.5 (``optics.DEFAULT_REFRACTIVE_INDEX``, the value PANDORA,
+            NeRSP, PolGS and NeISF assume).
         use_depth_normal: L_dn on. Default True.
         use_scale: L_scale on. Default True.
     """
@@ -431,6 +467,11 @@ class LossConfig(CheckedConfig):
     use_normal: bool = True
     use_depth_normal: bool = True
     use_scale: bool = True
+    use_polar_normal: bool = False
+    alpha_polar_normal: float = field(default=0.1, metadata=at_least(0))
+    polar_normal_min_dolp: float = field(default=0.02, metadata=within(0, 1))
+    polar_normal_zenith_min_dolp: float = field(default=0.05, metadata=within(0, 1))
+    polar_normal_refractive_index: float = field(default=1.5, metadata=above(1))
 
 
 def _odd_distances(value: tuple[int, ...], config: Any) -> bool:
@@ -622,7 +663,8 @@ class PolarConfig(CheckedConfig):
     cache_dir: str | None = None
 
     RETIRED: ClassVar[dict[str, str]] = {
-        "refractive_index": "nothing read it (the bundled scenes' generator takes its own, `polargs generate --ior`); "
+        "refractive_index": "nothing read it (the bundled scenes' generator takes its own, `polargs generate --ior`; "
+                            "the single-view polarimetric normal's is losses.polar_normal_refractive_index); "
                             "remove it from the settings",
     }
 

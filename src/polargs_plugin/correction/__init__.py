@@ -73,8 +73,9 @@ def _reflective_regions(
 
     Where some angle image of some channel exceeds the white level (HDR), the masks use the DoLP
     a sensor clipping there would record. A pixel with some channel of some angle at the clipping
-    level (pri_saturation * white) holds clipped colour: saturated, never a donor. Specular and
-    overexposed pixels are restricted to ``inside``.
+    level (pri_saturation * white) holds clipped colour: saturated, never a donor; with
+    ``overexposed_rule="saturated"`` the overexposed mask is those pixels and the specular mask
+    leaves them out. Specular and overexposed pixels are restricted to ``inside``.
     """
     white = float(config.white_level)
     brightest = angles.flatten(0, 1).amax(dim=0, keepdim=True)  # (1, H, W)
@@ -87,6 +88,9 @@ def _reflective_regions(
         mask_dolp, peak, config.specular_dolp, config.overexposed_dolp, config.intensity_range,
         white_level=white, intermediate=config.intermediate_dolp, saturated=saturated,
     )
+    if config.overexposed_rule == "saturated":
+        overexposed = saturated.clone()
+        specular &= ~saturated
     specular &= inside
     overexposed &= inside
     return specular, overexposed, saturated
