@@ -32,6 +32,7 @@ __all__ = [
     "classify_counts",
     "class_fractions",
     "depth_map_counts",
+    "seen_in_depth_map",
     "triangle_visibility",
     "triangle_counts",
     "incidence_cosines",
@@ -136,6 +137,20 @@ def _seen_in_depth_map(cam: np.ndarray, K: np.ndarray, depth: np.ndarray, tolera
     return inside & (low - tolerance <= z) & (z <= high + tolerance)
 
 
+def seen_in_depth_map(points: np.ndarray, view: View, tolerance_px: float = 1.0) -> np.ndarray:
+    """(N,) bool: which world points (N, 3) the view sees, by its ground-truth depth map (the test
+    of :func:`depth_map_counts`: on the depth map's surface within ``tolerance_px`` footprints).
+
+    Raises:
+        ValueError: the view has no ground-truth depth map.
+    """
+    if view.depth_gt is None:
+        raise ValueError(f"depth_map_counts: view {view.name!r} has no ground-truth depth map")
+    K, w2c, _ = _camera(view)
+    cam = np.asarray(points, dtype=np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    return _seen_in_depth_map(cam, K, view.depth_gt[0].detach().cpu().numpy().astype(np.float64), tolerance_px)
+
+
 def depth_map_counts(
     points: np.ndarray,
     normals: np.ndarray,
@@ -167,12 +182,8 @@ def depth_map_counts(
     well = np.zeros(len(points), dtype=np.int16)
     grazing = np.zeros(len(points), dtype=np.int16)
     for view in views:
-        if view.depth_gt is None:
-            raise ValueError(f"depth_map_counts: view {view.name!r} has no ground-truth depth map")
-        K, w2c, centre = _camera(view)
-        cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-        seen = _seen_in_depth_map(cam, K, view.depth_gt[0].detach().cpu().numpy().astype(np.float64), tolerance_px)
-        steep = incidence_cosines(points[seen], normals[seen], centre) >= classes.grazing_cos
+        seen = seen_in_depth_map(points, view, tolerance_px)
+        steep = incidence_cosines(points[seen], normals[seen], view.camera_center.detach().cpu().numpy()) >= classes.grazing_cos
         index = np.flatnonzero(seen)
         well[index[steep]] += 1
         grazing[index[~steep]] += 1
