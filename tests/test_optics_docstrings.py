@@ -13,6 +13,7 @@ import polargs_plugin.optics.azimuth
 import polargs_plugin.optics.fresnel
 import polargs_plugin.optics.mosaic
 import polargs_plugin.optics.pattern
+import polargs_plugin.optics.single_view
 import polargs_plugin.optics.stokes
 import polargs_plugin.viz
 
@@ -21,6 +22,7 @@ MODULES = [
     polargs_plugin.optics.fresnel,
     polargs_plugin.optics.mosaic,
     polargs_plugin.optics.pattern,
+    polargs_plugin.optics.single_view,
     polargs_plugin.optics.stokes,
     polargs_plugin.geometry,
     polargs_plugin.viz,

@@ -43,7 +43,10 @@ from polargs_plugin.correction.store import (
     MEMORY_BUDGET, BytesLRU, MapsStore, maps_cache_file, maps_cache_key, tensor_bytes,
 )
 from polargs_plugin.io import PolarInputError
-from polargs_plugin.losses import ReflectiveTargets, depth_normal_loss, normal_loss, normals_within, scale_loss
+from polargs_plugin.losses import (
+    ReflectiveTargets, depth_normal_loss, normal_loss, normals_within, polar_normal_loss, scale_loss,
+)
+from polargs_plugin.optics.single_view import single_view_normals
 from polargs_plugin.types import (
     GaussianState, NewGaussians, PolarMaps, RenderOut, View, describe_view, validate_view,
 )
@@ -123,6 +126,8 @@ class PolarHooks:
         # per-view constants of L_ref, built from the maps when first used, kept within a budget
         # when every view's fit (BytesLRU's cycle)
         self._reflective = BytesLRU(MEMORY_BUDGET)
+        # per-view inputs of the single-view polarimetric normal (losses.use_polar_normal), alike
+        self._polar_inputs = BytesLRU(MEMORY_BUDGET)
         self._warned: set[tuple[str, str, str]] = set()  # (kind, view name, source): warn once
         self._shapes: dict[str, tuple[int, int]] = {}
 
@@ -149,6 +154,8 @@ class PolarHooks:
         self._shapes = {view.name: (view.height, view.width) for view in views}
         self._reflective.clear()
         self._reflective.set_cycle(len(views))
+        self._polar_inputs.clear()
+        self._polar_inputs.set_cycle(len(views))
         self.maps = MapsStore(self.config.cache_dir)
         for view in views:
             self.maps.prepare(view, self.config, partial(self._compute_maps, view))
@@ -244,7 +251,10 @@ class PolarHooks:
         Other terms: ``alpha * L_n`` once the densifier holds a PatchMatch normal for this view,
         on all its pixels until ``losses.normal_until_after_dense`` iterations past the Dense
         window, and after that (the targets are no longer refreshed) only where the rendered
-        normal lies within ``losses.normal_hold_deg`` of the target;
+        normal lies within ``losses.normal_hold_deg`` of the target; with
+        ``losses.use_polar_normal``, alongside it ``alpha_polar_normal * L_pn``, L_n against the
+        view's own single-view polarimetric normal on the pixels where N_opt is invalid
+        (:func:`polargs_plugin.losses.polar_normal_loss`);
         ``beta * L_dn`` from ``config.losses.depth_normal_from_iter`` on, on ``render.plane_depth``
         (the unbiased plane depth, as PGSR) where the renderer gives it, else on ``render.depth``;
         ``gamma * L_scale``.
@@ -276,12 +286,17 @@ class PolarHooks:
         if cfg.use_normal and self._normal_loss_on(iteration):
             target = self.normal_target(view.name)
             if target is not None:
-                normal, valid = (t.to(color.device) for t in target)
+                normal, confirmed = (t.to(color.device) for t in target)
+                valid = confirmed
                 if not self._normal_targets_fresh(iteration):
                     valid = valid & normals_within(render.normal.detach(), normal, cfg.normal_hold_deg)
                 l_n = normal_loss(render.normal, normal, valid)
                 terms.append(cfg.alpha_normal * l_n)
                 logs["l_n"] = l_n.detach()
+                if cfg.use_polar_normal:
+                    l_pn = self._polar_normal_loss(view, render, ~confirmed)
+                    terms.append(cfg.alpha_polar_normal * l_pn)
+                    logs["l_pn"] = l_pn.detach()
         if cfg.use_depth_normal and iteration >= cfg.depth_normal_from_iter:
             depth = render.plane_depth if render.plane_depth is not None else render.depth
             l_dn = depth_normal_loss(depth, render.normal, render.alpha, view.K)
@@ -293,6 +308,28 @@ class PolarHooks:
             logs["l_scale"] = l_scale.detach()
         extra = sum(terms[1:], terms[0]) if terms else color.new_zeros(())
         return extra, logs
+
+    def _polar_normal_loss(self, view: View, render: RenderOut, unconfirmed: Tensor) -> Tensor:
+        """L_n against the view's single-view polarimetric normal (``losses.use_polar_normal``) on
+        the ``unconfirmed`` pixels (N_opt invalid) where the render is opaque
+        (``densify.alpha_threshold``) and inside the view's mask."""
+        cfg = self.config.losses
+        device = render.normal.device
+        key = (view.name, torch.device(device))
+        cached = self._polar_inputs.get(key)
+        if cached is None:
+            maps = self.maps[view.name]
+            cached = tuple(None if t is None else t.to(device)
+                           for t in (maps.aolp, maps.dolp, maps.specular_mask, maps.overexposed_mask, view.mask))
+            self._polar_inputs.put(key, cached, tensor_bytes(cached))
+        aolp, dolp, specular, overexposed, mask = cached
+        target = single_view_normals(
+            aolp, dolp, render.normal, view.K, self.config.densify.patchmatch.azimuth_model,
+            cfg.polar_normal_refractive_index, min_dolp=cfg.polar_normal_min_dolp,
+            zenith_min_dolp=cfg.polar_normal_zenith_min_dolp, specular_mask=specular, overexposed_mask=overexposed,
+        )
+        where = unconfirmed & (render.alpha.detach() > self.config.densify.alpha_threshold)
+        return polar_normal_loss(render.normal, target, where if mask is None else where & mask)
 
     def _check_view_known(self, where: str, view: View) -> None:
         if not isinstance(getattr(view, "stokes", None), Tensor):
@@ -315,7 +352,7 @@ class PolarHooks:
         if geometry:
             fields += ["plane_depth" if render.plane_depth is not None else "depth", "normal", "alpha"]
         elif cfg.use_normal and self._normal_loss_on(iteration) and self.normal_target(view.name) is not None:
-            fields.append("normal")
+            fields += ["normal", "alpha"] if cfg.use_polar_normal else ["normal"]
         _check_render(where, render, view, self._maps_dtype(view), fields=fields)
         if cfg.use_scale:
             scales = getattr(gaussians, "scales", None)

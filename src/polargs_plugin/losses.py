@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from polargs_plugin.depth_normal import depth_normal_loss_fused
+from polargs_plugin.optics.single_view import SingleViewNormals
 from polargs_plugin.reflective_window import reflective_window_losses
 from polargs_plugin.ssim import gaussian_kernel1d, ssim_from_moments, ssim_map
 from polargs_plugin.threads import numba_path
@@ -32,6 +33,7 @@ __all__ = [
     "ReflectiveTargets",
     "reflective_replacement",
     "normal_loss",
+    "polar_normal_loss",
     "normals_within",
     "depth_to_points",
     "normal_from_depth",
@@ -334,6 +336,35 @@ def normal_loss(normal: Tensor, target: Tensor, valid: Tensor) -> Tensor:
         Scalar, 0 where no pixel is valid.
     """
     per_pixel = (safe_normalize(normal, dim=0) - target).abs().sum(dim=0, keepdim=True)
+    return (per_pixel * valid.to(normal.dtype)).sum() / valid[0].numel()
+
+
+def polar_normal_loss(normal: Tensor, target: SingleViewNormals, where: Tensor | None = None) -> Tensor:
+    r"""L_n against one view's own polarimetric normal
+    (:func:`polargs_plugin.optics.single_view_normals`), on the pixels PatchMatch confirmed nothing.
+
+    .. math::
+        \frac{1}{HW}\Big(\sum_{full} \lVert \hat N - N_{pol} \rVert_1
+        + \sum_{azimuth\ only} |\hat N \cdot m|\Big)
+
+    with :math:`\hat N` the rendered normal made unit length, :math:`N_{pol}` = ``target.normal``
+    and :math:`m` = ``target.plane``, the normal of the measured plane of incidence: on
+    ``azimuth_only`` pixels only the component of :math:`\hat N` that leaves the measured azimuth
+    is penalised, its zenith is free. Divided by the view's pixel count, as :func:`normal_loss`.
+
+    Args:
+        normal: :math:`(3, H, W)` rendered camera-frame normal (any length).
+        target: a :class:`~polargs_plugin.optics.single_view.SingleViewNormals` of the view
+            (:math:`(3, H, W)` and :math:`(1, H, W)` maps).
+        where: optional :math:`(1, H, W)` bool, the pixels that may use it (with ``target.valid``).
+
+    Returns:
+        Scalar, 0 where no pixel is valid.
+    """
+    valid = target.valid if where is None else target.valid & where
+    unit = safe_normalize(normal, dim=0)
+    per_pixel = torch.where(target.azimuth_only, (unit * target.plane).sum(dim=0, keepdim=True).abs(),
+                            (unit - target.normal).abs().sum(dim=0, keepdim=True))
     return (per_pixel * valid.to(normal.dtype)).sum() / valid[0].numel()
 
 

@@ -1,7 +1,7 @@
 """Stateless polarization maths on torch tensors (CPU and CUDA): Stokes, AoLP/DoLP, sensor
-mosaics (and telling mono from colour ones, ``optics.pattern``), Fresnel DoLP and the normal <->
-azimuth conventions. Imports nothing else of the package except ``io.PolarInputError`` and
-``threads.numba_scheduling``."""
+mosaics (and telling mono from colour ones, ``optics.pattern``), Fresnel DoLP, the normal <->
+azimuth conventions and single-view normals from AoLP and DoLP (``optics.single_view``). Imports
+nothing else of the package except ``io.PolarInputError`` and ``threads.numba_scheduling``."""
 
 from polargs_plugin.optics.azimuth import (
     AZIMUTH_MODELS,
@@ -34,6 +34,7 @@ from polargs_plugin.optics.mosaic import (
     stokes_from_raw,
     mosaic_from_intensities,
 )
+from polargs_plugin.optics.single_view import SingleViewNormals, single_view_normals
 from polargs_plugin.optics.stokes import (
     POLARIZER_ANGLES_DEG,
     POLARIZER_ANGLES_RAD,
@@ -72,6 +73,8 @@ __all__ = [
     "demosaic_polar",
     "stokes_from_raw",
     "mosaic_from_intensities",
+    "SingleViewNormals",
+    "single_view_normals",
     "POLARIZER_ANGLES_DEG",
     "POLARIZER_ANGLES_RAD",
     "aolp_from_stokes",
