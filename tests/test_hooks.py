@@ -23,8 +23,8 @@ def _view(name="v0", seed=0):
     s0 = 2 * colour
     s1 = torch.zeros(3, H, W)
     s2 = 0.02 * colour
-    s0[:, 3:6, 4:8] += 0.6
-    s1[:, 3:6, 4:8] += 0.45
+    s0[:, 3:6, 4:8] += 0.4  # bright (peak about 0.73), DoLP about 0.38, no angle image clipped
+    s1[:, 3:6, 4:8] += 0.4
     s0[:, 10:12, 12:15] = 2.0
     s2[:, 10:12, 12:15] = 0.0
     K = torch.tensor([[30.0, 0, W / 2], [0, 30.0, H / 2], [0, 0, 1]], dtype=torch.float64)
