@@ -57,6 +57,28 @@ def test_generate_a_family_scene_with_its_visibility(tmp_path, capsys):
         assert (other / name).read_bytes() == (out / name).read_bytes(), name
 
 
+def test_generate_writes_an_environment_lit_scene_and_a_second_block_family_seed(tmp_path):
+    """The bundled glazed_pot and a family seed of the second block that draws surroundings: the
+    folder records the environment and the family's lighting, and its diffuse/specular split adds
+    up to the images where nothing clipped."""
+    from polargs_plugin.data.family import LIT_SEED_START, family_scene
+    from polargs_plugin.data.scene_format import read_scene
+
+    seed = next(s for s in range(LIT_SEED_START, LIT_SEED_START + 20) if family_scene(s).lighting == "environment")
+    for name, scene_arg in (("pot", "glazed_pot"), ("lit", f"family:{seed}")):
+        out = tmp_path / name
+        assert main(["generate", "--scene", scene_arg, "--out", str(out), "--views", "2", "--size", "40x40"]) == 0
+        scene = read_scene(out)
+        assert scene.meta["environment"]["softboxes"], name
+        if name == "lit":
+            assert scene.meta["family"]["lighting"] == "environment" and scene.meta["lights"] == []
+        for i, view in enumerate(scene.views):
+            keep = view.mask[0] & ~scene.overexposed_masks[i][0]
+            err = (view.image - scene.diffuse_gt[i] - scene.specular_gt[i])[:, keep]
+            assert keep.sum() > 50 and err.abs().mean() < 0.01
+            assert float(scene.specular_gt[i][:, view.mask[0]].mean()) > 0.005  # the surroundings are mirrored
+
+
 def test_generate_refuses_a_seed_that_disagrees_with_the_scene_and_an_unknown_scene(tmp_path, capsys):
     out = tmp_path / "x"
     assert main(["generate", "--scene", "family:16", "--seed", "3", "--out", str(out), "--small"]) == 2
