@@ -275,6 +275,86 @@ def test_the_verdict_needs_both_chamfer_figures_and_the_means_and_dense_budget_a
     assert "**the Chamfer figures disagree**" in markdown and "### Means over the scenes" in markdown
 
 
+def _markdown_rows(markdown: str, title: str) -> list[dict[str, str]]:
+    """The rows of the Markdown table under ``### title``, as {column: cell}."""
+    lines = markdown.split(f"### {title}\n\n", 1)[1].splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| "))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    table = lines[start:end]
+    head = [c.strip() for c in table[0].strip("|").split("|")]
+    return [dict(zip(head, [c.strip() for c in line.strip("|").split("|")])) for line in table[2:]]
+
+
+def test_a_variant_that_loses_a_visibility_class_against_base_is_named(tmp_path):
+    """Per scene and visibility class: the class's share, each variant's completeness (mean over
+    seeds) and its change against base and reg, the missing share; a variant loses the class where
+    it is worse than base beyond the larger seed spread (two seeds) or by more than 5 % (one seed),
+    and the verdict (results.md and the report's scene section) names it; a class under 5 % of the
+    seen surface is shown, marked and not compared."""
+    from polargs_plugin.ablation.report import write_report
+
+    shares = {"many": 0.70, "few": 0.27, "grazing": 0.03}
+    # scene s, two seeds: (few completeness per seed, grazing completeness per seed, few missing per seed)
+    two_seeds = {"base": ([0.010, 0.012], [0.02, 0.02], [0.02, 0.04]),
+                 "reg": ([0.0115, 0.0125], [0.02, 0.02], [0.03, 0.03]),   # +9.1 %, within base's spread
+                 "no-pc": ([0.0112, 0.0118], [0.02, 0.02], [0.03, 0.03]),  # +4.5 %, within the spread
+                 "full": ([0.014, 0.016], [0.05, 0.06], [0.10, 0.12])}    # +36 %: loses few; grazing not compared
+    for variant, (few, grazing, missing) in two_seeds.items():
+        for seed in range(2):
+            figures = {"chamfer": 0.01, "chamfer_visible": 0.02, "normal_mae_deg": 10.0, "visible_fraction": 0.9,
+                       **{f"share_{c}": s for c, s in shares.items()}, "completeness_many": 0.005,
+                       "completeness_few": few[seed], "completeness_grazing": grazing[seed],
+                       "missing_many": 0.0, "missing_few": missing[seed], "missing_grazing": 0.2}
+            _fake_run(tmp_path, variant, seed, figures, scene="s")
+    # scene t, one seed: no-dense +6 % (loses), full +4 % (holds)
+    for variant, few in (("base", 0.010), ("no-dense", 0.0106), ("full", 0.0104)):
+        figures = {"chamfer": 0.01, "chamfer_visible": 0.02, "normal_mae_deg": 10.0, "visible_fraction": 0.9,
+                   **{f"share_{c}": s for c, s in shares.items()}, "completeness_many": 0.005, "completeness_few": few,
+                   "completeness_grazing": 0.02, "missing_few": 0.05}
+        _fake_run(tmp_path, variant, 0, figures, scene="t")
+
+    results = gather(tmp_path)
+    rows = {(r["scene"], r["class"], r["variant"]): r for r in results["class_completeness"]}
+    full = rows[("s", "few", "full")]
+    assert full["share"] == pytest.approx(0.27) and full["compared"] and full["seeds"] == 2
+    assert full["completeness"] == pytest.approx(0.015) and full["completeness_std"] == pytest.approx(0.001 * math.sqrt(2))
+    assert full["vs_base"] == pytest.approx(0.015 / 0.011 - 1) and full["vs_reg"] == pytest.approx(0.015 / 0.012 - 1)
+    assert full["missing"] == pytest.approx(0.11) and full["loses_to_base"] is True
+    losing = {(s, c, v) for (s, c, v), r in rows.items() if r["loses_to_base"]}
+    assert losing == {("s", "few", "full"), ("t", "few", "no-dense")}
+    assert rows[("s", "few", "no-pc")]["loses_to_base"] is False and rows[("s", "few", "reg")]["loses_to_base"] is False
+    assert rows[("t", "few", "full")]["loses_to_base"] is False and rows[("s", "few", "base")]["loses_to_base"] is None
+    grazing = rows[("s", "grazing", "full")]  # 2.5 times base's, but 3 % of the seen surface: not compared
+    assert not grazing["compared"] and grazing["loses_to_base"] is None and grazing["vs_base"] == pytest.approx(1.75)
+    assert rows[("t", "few", "no-dense")]["vs_reg"] is None  # no reg on t
+    assert json.loads((tmp_path / "results.json").read_text())["class_completeness"] == results["class_completeness"]
+
+    markdown = (tmp_path / "results.md").read_text()
+    verdict = markdown.split("### Verdict", 1)[1].split("###", 1)[0]
+    assert "- `full` loses the `few` class (27 % of the seen surface) against `base` on s: completeness +36.4 % " \
+           "(beyond the seeds' spread), missing 11.0 % against base's 3.0 %" in verdict
+    assert "- `no-dense` loses the `few` class (27 % of the seen surface) against `base` on t: completeness +6.0 % " \
+           "(one seed: more than 5 %)" in verdict
+    assert verdict.count(" loses the ") == 2 and "`grazing` class" not in verdict
+    table = {(r["scene"], r["class"], r["variant"]): r for r in _markdown_rows(markdown, "Completeness by visibility class")}
+    assert len(table) == 3 * (4 + 3)
+    assert table[("s", "few", "full")] == {
+        "scene": "s", "class": "few", "share of seen": "0.270", "variant": "full", "seeds": "2",
+        "completeness": "0.015 ± 0.001414", "vs base": "+36.4 %", "vs reg": "+25.0 %", "missing": "11.0 %",
+        "against base": "**loses**"}
+    assert table[("s", "few", "reg")]["vs base"] == "+9.1 %" and table[("s", "few", "reg")]["against base"] == "holds"
+    assert table[("s", "few", "base")]["vs base"] == "" and table[("s", "few", "base")]["missing"] == "3.0 %"
+    assert table[("s", "grazing", "full")]["share of seen"] == "0.030 (under 5 %: not compared)"
+    assert table[("s", "grazing", "full")]["against base"] == "" and table[("s", "grazing", "full")]["vs base"] == "+175.0 %"
+    assert table[("t", "few", "no-dense")]["missing"] == "5.0 %" and table[("t", "many", "full")]["missing"] == "n/a"
+
+    report = write_report(tmp_path, results).read_text()
+    section_s, section_t = report.split("\n## s\n", 1)[1].split("\n## t\n", 1)
+    assert "- `full` loses the `few` class (27 % of the seen surface) against `base`: completeness +36.4 %" in section_s
+    assert " loses the " not in section_s.replace("- `full` loses the `few`", "")
+    assert "- `no-dense` loses the `few` class" in section_t and "`full` loses" not in section_t
+
+
 def test_uncapped_figures_reach_the_results(tmp_path):
     """The uncapped Chamfer / completeness and the median signed distance of summary["figures"] go
     to results.csv / .json (per run, mean ± spread over seeds) and to the Markdown table; a run
@@ -348,6 +428,9 @@ def _check_run(folder: Path, variant: str, command: str = "demo") -> dict:
     for key in ("chamfer", "accuracy", "completeness", "fscore", "normal_mae_deg", "psnr", "num_gaussians",
                 "chamfer_uncapped", "completeness_uncapped", "signed_distance_median"):
         assert _finite(figures[key]), (key, figures[key])
+    # the share of each visibility class's GT samples the mesh misses (NaN for an empty class)
+    missing = [figures[f"missing_{name}"] for name in ("many", "few", "grazing")]
+    assert any(_finite(m) for m in missing) and all(0 <= m <= 1 for m in missing if _finite(m)), missing
     lines = (folder / "curves.csv").read_text().strip().splitlines()
     assert lines[0].startswith("iteration,loss,psnr,num_gaussians,appended,appended_total") and len(lines) == 61
     for name in ("metrics.json", "tsdf_mesh.ply", "checkpoint.pt", "views.npz", "mesh_error.npz", "run.log"):

@@ -469,31 +469,38 @@ def analytic_classes(points: np.ndarray, eyes: list[np.ndarray], grazing_deg: fl
     return np.where(well >= many, 0, np.where(well > 0, 1, np.where(grazing > 0, 2, -1)))
 
 
-@pytest.mark.slow
-def test_completeness_by_visibility_class_of_a_sphere_with_a_missing_cap():
-    # GT: the unit sphere; prediction: the same sphere less a cap of angular radius 0.7 around an
-    # axis 70 deg above the horizon. Sixteen cameras 10 deg above the horizon see the sphere's top
-    # at grazing angles only, its middle latitudes from few views, its equator from many. A GT point
-    # at angle g < 0.7 from the axis is 2 sin((0.7 - g) / 2) from the prediction (the chord to the
-    # cap's rim), every other one lies on it.
+def sphere_less_a_cap(size: int = 256, beta: float = 0.7):
+    """The analytic case of the visibility classes: GT the unit sphere; prediction the same sphere
+    less a cap of angular radius ``beta`` around an axis 70 deg above the horizon. Sixteen cameras
+    10 deg above the horizon (depth maps of ``size`` px) see the sphere's top at grazing angles
+    only, its middle latitudes from few views, its equator from many. Returns (gt, pred, views, eyes,
+    axis, points, codes, angle): an independent uniform sample of the exact sphere, its classes in
+    closed form and each point's angle from the axis."""
     elevation = math.radians(10)
     eyes = [4.0 * np.array([math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a), math.sin(elevation)])
             for a in np.radians(np.arange(0, 360, 360 / 16))]
-    views = [sphere_depth_view(eye) for eye in eyes]
+    views = [sphere_depth_view(eye, size=size, focal=float(size)) for eye in eyes]
     gt = sphere(1.0)
     axis = np.array([math.cos(math.radians(70)), 0.0, math.sin(math.radians(70))])
-    beta = 0.7
     vertices, triangles = np.asarray(gt.vertices), np.asarray(gt.triangles)
     centroid = vertices[triangles].mean(axis=1)
     centroid /= np.linalg.norm(centroid, axis=1, keepdims=True)
     pred = (vertices, triangles[np.arccos(np.clip(centroid @ axis, -1, 1)) >= beta])
-    cd = chamfer_distance(pred, gt, num_samples=N, max_dist=0.05, cull_views=views, region="object")
-    # the independent sampler: uniform points on the exact sphere, classes and distances in closed form
     rng = np.random.default_rng(7)
     points = rng.normal(size=(400_000, 3))
     points /= np.linalg.norm(points, axis=1, keepdims=True)
     codes = analytic_classes(points, eyes, 70.0, 4)
-    angle = np.arccos(np.clip(points @ axis, -1, 1))
+    return gt, pred, views, eyes, axis, points, codes, np.arccos(np.clip(points @ axis, -1, 1))
+
+
+@pytest.mark.slow
+def test_completeness_by_visibility_class_of_a_sphere_with_a_missing_cap():
+    # A GT point at angle g < 0.7 from the cap's axis is 2 sin((0.7 - g) / 2) from the prediction
+    # (the chord to the cap's rim), every other one lies on it (sphere_less_a_cap).
+    beta = 0.7
+    gt, pred, views, eyes, axis, points, codes, angle = sphere_less_a_cap(beta=beta)
+    cd = chamfer_distance(pred, gt, num_samples=N, max_dist=0.05, cull_views=views, region="object")
+    # the independent sampler: uniform points on the exact sphere, classes and distances in closed form
     distance = np.where(angle < beta, 2 * np.sin((beta - angle) / 2), 0.0)
     floor = nn_spacing(4 * math.pi, N)  # the prediction's sampling floor off the cap
     seen = codes >= 0
@@ -509,6 +516,31 @@ def test_completeness_by_visibility_class_of_a_sphere_with_a_missing_cap():
     assert cd["chamfer_visible"] == pytest.approx((cd["accuracy_uncapped"] + cd["completeness_visible"]) / 2)
     # the capped completeness drops the cap's far points (beyond 0.05) and misses most of the loss
     assert cd["completeness"] < 0.5 * cd["completeness_visible"]
+
+
+def test_missing_share_per_visibility_class_is_the_lost_caps_area_share():
+    """A GT point is missing (farther than 2 % of the GT box diagonal, t, from the prediction)
+    exactly when its chord to the lost cap's rim exceeds t: inside the cap of angular radius
+    beta - 2 asin(t / 2). Each class's missing share is that inner cap's share of the class's
+    area, here from uniform points on the exact sphere classified in closed form."""
+    from polargs_plugin.metrics import MISSING_FRACTION
+
+    beta = 0.7
+    gt, pred, views, _, _, _, codes, angle = sphere_less_a_cap(beta=beta)
+    cd = chamfer_distance(pred, gt, num_samples=50_000, cull_views=views, region="object")
+    vertices = np.asarray(gt.vertices)
+    t = MISSING_FRACTION * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    assert cd["missing_dist"] == pytest.approx(t)
+    inner = angle < beta - 2 * math.asin(t / 2)
+    for code, name in enumerate(("many", "few", "grazing")):
+        members = codes == code
+        assert cd["missing_by_visibility"][name] == pytest.approx(inner[members].mean(), abs=0.02), name
+    missing = cd["missing_by_visibility"]
+    assert missing["many"] < missing["few"] < missing["grazing"]  # the cap is lost mostly where seen worst
+    # the same figure with a given distance: everything of the cap beyond the chord 0.2
+    cd = chamfer_distance(pred, gt, num_samples=50_000, cull_views=views, region="object", missing_dist=0.2)
+    inner = angle < beta - 2 * math.asin(0.1)
+    assert cd["missing_by_visibility"]["few"] == pytest.approx(inner[codes == 1].mean(), abs=0.02)
 
 
 def test_no_visibility_figures_without_depth_maps():

@@ -12,7 +12,9 @@ the GT surface (outside positive) tells a mesh that sits inside from one that si
 Where the views carry ground-truth depth maps, the GT points are also sorted by how the training
 views see them (:mod:`polargs_plugin.data.visibility`: seen by many views, by few, only at
 grazing angles): the uncapped completeness of each class and the uncapped Chamfer over the GT
-surface some view sees (``chamfer_visible``) show lost surface that the cap hides. Views without
+surface some view sees (``chamfer_visible``) show lost surface that the cap hides, and the share
+of each class's GT samples farther than ``missing_dist`` from the prediction (``missing_by_visibility``)
+how much of it is gone. Views without
 their own GT depth maps (or normals) get the ones ray-cast from the GT mesh (:func:`with_mesh_maps`).
 Distances are in the meshes' own units; bring the prediction into the ground truth's frame and
 scale first.
@@ -44,6 +46,7 @@ from polargs_plugin.types import View
 __all__ = [
     "MAX_DIST_FRACTION",
     "FSCORE_FRACTION",
+    "MISSING_FRACTION",
     "REGIONS",
     "sample_surface",
     "sample_surface_with_faces",
@@ -70,6 +73,9 @@ __all__ = [
 # the F-score threshold is a tenth of that (2-2.5 mm on DTU; ~0.017 on a unit-radius sphere).
 MAX_DIST_FRACTION = 0.05
 FSCORE_FRACTION = 0.005
+#: A GT sample farther than this fraction of the GT bounding-box diagonal from the prediction is
+#: "missing" (``missing_by_visibility``): well beyond the F-score threshold, below the outlier cap.
+MISSING_FRACTION = 0.02
 
 #: Evaluation regions of :func:`chamfer_distance` (docs/evaluation.md "Protocol"):
 #: "all" = whole meshes; "masks" = predicted points culled to the views' dilated masks (DTU /
@@ -458,6 +464,7 @@ def chamfer_distance(
     progress: Callable[[str], None] | None = None,
     visibility_classes: VisibilityClasses | None = None,
     visibility_source: str = "ground-truth depth maps",
+    missing_dist: float | None = None,
 ) -> dict[str, float | int | str | bool]:
     """DTU-style Chamfer distance, F-score and signed distance between a predicted and a GT mesh.
 
@@ -486,6 +493,8 @@ def chamfer_distance(
         visibility_source: where those depth maps came from, recorded as
             ``visibility_classes["source"]`` (:func:`with_mesh_maps` gives views without their
             own the ones ray-cast from the GT mesh, and says so).
+        missing_dist: a seen GT sample farther than this from the prediction counts as missing
+            (``missing_by_visibility``). None = ``MISSING_FRACTION`` x GT bounding-box diagonal.
 
     Returns:
         dict (distances in ``units``):
@@ -505,7 +514,9 @@ def chamfer_distance(
           those), chamfer_visible = (accuracy_uncapped + completeness_visible) / 2,
           visibility_shares and completeness_by_visibility ({many, few, grazing}: each class's
           share of the seen GT samples and its uncapped completeness, NaN for an empty class),
-          visibility_classes (the thresholds and the depth maps' ``source``).
+          missing_by_visibility (per class, the share of its GT samples farther than missing_dist
+          from the predicted samples, NaN for an empty class), missing_dist, visibility_classes
+          (the thresholds and the depth maps' ``source``).
     """
     step = progress or (lambda name: None)
     region = _resolve_region(region, cull_views)
@@ -532,8 +543,10 @@ def chamfer_distance(
     if with_depth:
         step("visibility classes")
         codes = _visibility_codes(all_gt_points, _face_normals(gt, gt_faces), cull_views, visibility_classes)
+        if missing_dist is None:
+            missing_dist = MISSING_FRACTION * _gt_diagonal(gt)
         figures.update(visible_surface_figures(figures["accuracy_uncapped"], to_pred_all, codes, visibility_classes,
-                                               visibility_source))
+                                               visibility_source, missing_dist))
     return {
         **figures,
         "max_dist": max_dist,
@@ -559,10 +572,15 @@ def _resolve_region(region: str | None, cull_views: Sequence[View] | None) -> st
     return region
 
 
+def _gt_diagonal(gt: MeshLike) -> float:
+    """The diagonal of the GT mesh's bounding box."""
+    gt_vertices, _ = _mesh_arrays(gt)
+    return float(np.linalg.norm(gt_vertices.max(0) - gt_vertices.min(0)))
+
+
 def _distance_thresholds(gt: MeshLike, max_dist: float | None, fscore_threshold: float | None) -> tuple[float, float]:
     """(max_dist, fscore_threshold), each given or its fraction of the GT bounding-box diagonal."""
-    gt_vertices, _ = _mesh_arrays(gt)
-    diagonal = float(np.linalg.norm(gt_vertices.max(0) - gt_vertices.min(0)))
+    diagonal = _gt_diagonal(gt)
     max_dist = MAX_DIST_FRACTION * diagonal if max_dist is None else float(max_dist)
     fscore_threshold = FSCORE_FRACTION * diagonal if fscore_threshold is None else float(fscore_threshold)
     if not (max_dist > 0 and fscore_threshold > 0):
@@ -607,26 +625,31 @@ def _visibility_codes(points: np.ndarray, normals: np.ndarray, views: Sequence[V
 
 def visible_surface_figures(
     accuracy_uncapped: float, to_pred: np.ndarray, codes: np.ndarray, classes: VisibilityClasses | None = None,
-    source: str = "ground-truth depth maps",
+    source: str = "ground-truth depth maps", missing_dist: float | None = None,
 ) -> dict[str, object]:
     """The visible-surface figures of :func:`chamfer_distance` from the uncapped accuracy, every GT
     sample's distance to the prediction ``to_pred`` (N,) and its visibility class code (N,)
     (:func:`polargs_plugin.data.visibility.classify_counts`); ``source``: where the depth maps
-    the codes come from."""
+    the codes come from; with ``missing_dist``, also each class's share of samples farther than
+    it (``missing_by_visibility``)."""
     classes = classes or VisibilityClasses()
     seen = codes != UNSEEN
     completeness = float(to_pred[seen].mean()) if seen.any() else math.nan
 
-    def class_mean(code: int) -> float:
+    def class_mean(code: int, values: np.ndarray) -> float:
         members = codes == code
-        return float(to_pred[members].mean()) if members.any() else math.nan
+        return float(values[members].mean()) if members.any() else math.nan
 
+    missing = {} if missing_dist is None else {
+        "missing_by_visibility": {name: class_mean(code, to_pred > missing_dist) for code, name in enumerate(CLASS_NAMES)},
+        "missing_dist": float(missing_dist)}
     return {
         "visible_fraction": float(seen.mean()),
         "completeness_visible": completeness,
         "chamfer_visible": (accuracy_uncapped + completeness) / 2,
         "visibility_shares": {name: float((codes == code).sum() / max(1, seen.sum())) for code, name in enumerate(CLASS_NAMES)},
-        "completeness_by_visibility": {name: class_mean(code) for code, name in enumerate(CLASS_NAMES)},
+        "completeness_by_visibility": {name: class_mean(code, to_pred) for code, name in enumerate(CLASS_NAMES)},
+        **missing,
         "visibility_classes": {"many_views": classes.many_views, "grazing_deg": classes.grazing_deg,
                                "source": source},
     }

@@ -16,17 +16,20 @@ VISIBILITY_CLASSES = ("many", "few", "grazing")
 
 def chamfer_figures(chamfer: dict[str, Any]) -> dict[str, Any]:
     """The visible-surface figures of a metrics.json ``chamfer`` entry, flat: ``chamfer_visible``,
-    ``completeness_visible``, ``visible_fraction``, ``completeness_<class>`` and ``share_<class>``
-    for the classes many, few, grazing (None where the evaluation had neither GT depth maps nor
-    cameras and a GT mesh to ray-cast them from)."""
+    ``completeness_visible``, ``visible_fraction``, ``completeness_<class>``, ``share_<class>`` and
+    ``missing_<class>`` (the share of the class's GT samples farther than ``missing_dist`` from the
+    mesh) for the classes many, few, grazing (None where the evaluation had neither GT depth maps
+    nor cameras and a GT mesh to ray-cast them from, or, for ``missing_<class>``, predates it)."""
     by_class = chamfer.get("completeness_by_visibility") or {}
     shares = chamfer.get("visibility_shares") or {}
+    missing = chamfer.get("missing_by_visibility") or {}
     return {
         "chamfer_visible": chamfer.get("chamfer_visible"),
         "completeness_visible": chamfer.get("completeness_visible"),
         "visible_fraction": chamfer.get("visible_fraction"),
         **{f"completeness_{name}": by_class.get(name) for name in VISIBILITY_CLASSES},
         **{f"share_{name}": shares.get(name) for name in VISIBILITY_CLASSES},
+        **{f"missing_{name}": missing.get(name) for name in VISIBILITY_CLASSES},
     }
 
 

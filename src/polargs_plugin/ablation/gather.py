@@ -10,6 +10,12 @@ surface some training view sees (``chamfer_visible``, docs/evaluation.md). The *
 variant better (or worse) than another on a scene only where both agree, and says where they
 disagree; the means over scenes, the completeness per visibility class and what Dense's appended
 Gaussians bought are tabled beside it.
+
+Per visibility class (many, few, grazing; :func:`class_completeness`), a variant **loses** the
+class against base where the class holds at least :data:`MIN_CLASS_SHARE` of the seen GT surface
+and the variant's mean completeness there is worse than base's by more than the larger of the two
+seed spreads and by more than :data:`LEVEL`; with a single seed on either side (no spread to go
+by), by more than :data:`CLASS_LOSS_ONE_SEED`. The verdict names every such variant.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from polargs_plugin.io import atomic_write
 from polargs_plugin.service.runs import SUMMARY_NAME
 
 __all__ = ["find_runs", "gather", "format_table", "format_results", "verdicts", "LEVEL", "scene_means", "dense_budget", "METRICS", "RESULT_FILES",
-           "VERDICT_PAIRS"]
+           "VERDICT_PAIRS", "class_completeness", "class_loss_lines", "MIN_CLASS_SHARE", "CLASS_LOSS_ONE_SEED", "CLASS_LOSS_RULE"]
 
 RESULT_FILES = ("results.csv", "results.json", "results.md")
 #: Figures compared with base and reg (``<key>_vs_base``, ``<key>_vs_reg``).
@@ -37,6 +43,16 @@ COMPARED = ("chamfer", "chamfer_visible", "normal_mae_deg")
 #: Relative changes below this, in both Chamfer figures, are "level" in the verdict: a change of
 #: the float rounding alone moves a run's figures by about a percent (docs/results.md).
 LEVEL = 0.01
+#: A visibility class holding less of the seen GT surface than this is shown but not compared: its
+#: completeness is a mean over too few samples, and a loss there costs the object little.
+MIN_CLASS_SHARE = 0.05
+#: With a single seed (no spread), a variant loses a visibility class against base where its class
+#: completeness is worse by more than this relative change (about the spread of two seeds' class figures).
+CLASS_LOSS_ONE_SEED = 0.05
+#: The rule above in words (results.md's and report.md's verdicts).
+CLASS_LOSS_RULE = ("Visibility classes lost against base (completeness in the class worse than base's by more than the "
+                   "larger seed spread and by more than 1 %, or by more than 5 % with one seed; classes under 5 % of "
+                   "the seen surface are not compared):")
 #: (variant, reference) pairs the verdict judges, where both were run.
 VERDICT_PAIRS: tuple[tuple[str, str], ...] = (
     ("full", "base"), ("full", "reg"), ("no-dense", "reg"), ("no-pc", "reg"), ("full", "no-dense"), ("full", "no-pc"))
@@ -60,6 +76,8 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("visible_fraction", "GT share seen", ".3f"),
     *((f"completeness_{name}", f"completeness, {name}", ".4g") for name in VISIBILITY_CLASSES),
     *((f"share_{name}", f"share, {name}", ".3f") for name in VISIBILITY_CLASSES),
+    # the share of the class's GT samples farther than 2 % of the GT box diagonal from the mesh
+    *((f"missing_{name}", f"missing, {name}", ".3f") for name in VISIBILITY_CLASSES),
     ("fscore", "F-score", ".3f"),
     ("normal_mae_deg", "normal MAE (deg)", ".2f"),
     ("psnr", "PSNR (dB)", ".2f"),
@@ -140,10 +158,10 @@ def gather(out: str | os.PathLike, write: bool = True) -> dict[str, Any]:
     """Read every run folder of ``out``; write results.csv / .json / .md (atomically) if ``write``.
 
     Returns ``{"runs": [row, ...], "table": [group, ...], "verdicts": [...], "scene_means": [...],
-    "dense_budget": [...], "markdown": str}``; a group has scene, variant, init, seeds,
-    ``<metric>: {mean, std, min, max, n}`` and the relative changes ``<key>_vs_base`` and
-    ``<key>_vs_reg`` for the keys of :data:`COMPARED`; :func:`verdicts`, :func:`scene_means`
-    and :func:`dense_budget` describe the other three.
+    "dense_budget": [...], "class_completeness": [...], "markdown": str}``; a group has scene,
+    variant, init, seeds, ``<metric>: {mean, std, min, max, n}`` and the relative changes
+    ``<key>_vs_base`` and ``<key>_vs_reg`` for the keys of :data:`COMPARED`; :func:`verdicts`,
+    :func:`scene_means`, :func:`dense_budget` and :func:`class_completeness` describe the other four.
     """
     out = Path(out)
     rows = [_row(folder) for folder in find_runs(out)]
@@ -168,7 +186,7 @@ def gather(out: str | os.PathLike, write: bool = True) -> dict[str, Any]:
             for key in COMPARED:
                 e[f"{key}_vs_{ref}"] = None if other is None or other is e else _relative(e[key]["mean"], other[key]["mean"])
     results = {"runs": rows, "table": table, "verdicts": verdicts(table), "scene_means": scene_means(table),
-               "dense_budget": dense_budget(table)}
+               "dense_budget": dense_budget(table), "class_completeness": class_completeness(table)}
     markdown = format_results(results)
     results["markdown"] = markdown
     if write:
@@ -181,7 +199,8 @@ def gather(out: str | os.PathLike, write: bool = True) -> dict[str, Any]:
         with atomic_write(out / "results.csv") as handle:
             handle.write(buffer.getvalue())
         with atomic_write(out / "results.json") as handle:
-            json.dump({key: results[key] for key in ("runs", "table", "verdicts", "scene_means", "dense_budget")},
+            json.dump({key: results[key] for key in ("runs", "table", "verdicts", "scene_means", "dense_budget",
+                                                     "class_completeness")},
                       handle, indent=2)
         with atomic_write(out / "results.md") as handle:
             handle.write(markdown + "\n")
@@ -317,6 +336,68 @@ def dense_budget(table: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def class_completeness(table: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per scene, init, visibility class (where the runs have the class figures) and variant: the
+    class's ``share`` of the seen GT surface (mean over the scene's groups: it depends on the GT and
+    the views only), ``compared`` (share >= :data:`MIN_CLASS_SHARE`), the variant's ``seeds``,
+    ``completeness`` and ``completeness_std`` (mean and spread over seeds), its relative changes
+    ``vs_base`` / ``vs_reg`` (None for the reference itself), ``missing`` (mean over seeds of the
+    share of the class's GT samples farther than 2 % of the GT box diagonal from the mesh) and
+    ``loses_to_base`` (module docstring; None for base, for a class not compared or without base)."""
+    by_key = {(e["scene"], e["variant"], e["init"]): e for e in table}
+    out = []
+    for scene, init in dict.fromkeys((e["scene"], e["init"]) for e in table):
+        entries = [e for e in table if (e["scene"], e["init"]) == (scene, init)]
+        base, reg = by_key.get((scene, "base", init)), by_key.get((scene, "reg", init))
+        for name in VISIBILITY_CLASSES:
+            key = f"completeness_{name}"
+            shares = [_mean(e, f"share_{name}") for e in entries if _mean(e, f"share_{name}") is not None]
+            if not shares:
+                continue
+            share = sum(shares) / len(shares)
+            compared = share >= MIN_CLASS_SHARE
+            for e in entries:
+                changes = {f"vs_{ref}": None if other is None or other is e else _relative(_mean(e, key), _mean(other, key))
+                           for ref, other in (("base", base), ("reg", reg))}
+                loses = _loses_class(e[key], base[key]) if compared and base is not None and base is not e else None
+                out.append({"scene": scene, "init": init, "class": name, "share": share, "compared": compared,
+                            "variant": e["variant"], "seeds": e[key]["n"], "completeness": e[key]["mean"],
+                            "completeness_std": e[key]["std"], **changes, "missing": _mean(e, f"missing_{name}"),
+                            "loses_to_base": loses})
+    return out
+
+
+def _loses_class(this: dict[str, Any], base: dict[str, Any]) -> bool | None:
+    """Whether a class completeness (``{mean, std}`` over seeds) is worse than base's beyond the
+    noise (module docstring); None where either has no mean."""
+    change = _relative(this["mean"], base["mean"])
+    if change is None:
+        return None
+    if this["std"] is None or base["std"] is None:
+        return change > CLASS_LOSS_ONE_SEED
+    return change > LEVEL and this["mean"] - base["mean"] > max(this["std"], base["std"])
+
+
+def class_loss_lines(rows: list[dict[str, Any]], with_scene: bool = True) -> list[str]:
+    """Markdown bullets naming each variant of ``rows`` (:func:`class_completeness`) that loses a
+    visibility class against base, with the change and the missing shares; one line saying that
+    none does where the rows compared some class against base and none lost."""
+    lines = []
+    for r in rows:
+        if not r["loses_to_base"]:
+            continue
+        base = next(b for b in rows if (b["scene"], b["init"], b["class"], b["variant"]) == (r["scene"], r["init"], r["class"], "base"))
+        rule = "one seed: more than 5 %" if r["completeness_std"] is None or base["completeness_std"] is None else \
+            "beyond the seeds' spread"
+        where = f" on {r['scene']}" if with_scene else ""
+        lines.append(f"- `{r['variant']}` loses the `{r['class']}` class ({_number(100 * r['share'], '.0f')} % of the seen "
+                     f"surface) against `base`{where}: completeness {_percent(r['vs_base'], 1)} ({rule}), missing "
+                     f"{_share(r['missing'])} against base's {_share(base['missing'])}")
+    if not lines and any(r["loses_to_base"] is not None for r in rows):
+        lines.append("- no variant loses a visibility class (of at least 5 % of the seen surface) against `base`")
+    return lines
+
+
 def _verdict_table(rows: list[dict[str, Any]]) -> str:
     head = ["scene", "variant", "against", "Chamfer", "visible Chamfer", "normal MAE", "verdict"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
@@ -343,15 +424,23 @@ def _means_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _classes_table(table: list[dict[str, Any]]) -> str:
-    head = ["scene", "variant", "GT share seen"] + [f"{name} (share)" for name in VISIBILITY_CLASSES]
+def _classes_table(rows: list[dict[str, Any]], several_inits: bool) -> str:
+    head = ["scene"] + (["init"] if several_inits else []) + [
+        "class", "share of seen", "variant", "seeds", "completeness", "vs base", "vs reg", "missing", "against base"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
-    for e in table:
-        cells = [e["scene"], e["variant"], _number(_mean(e, "visible_fraction"), ".3f")]
-        cells += [f"{_number(_mean(e, f'completeness_{n}'), '.4g')} ({_number(_mean(e, f'share_{n}'), '.2f')})"
-                  for n in VISIBILITY_CLASSES]
+    for r in rows:
+        share = _number(r["share"], ".3f") + ("" if r["compared"] else " (under 5 %: not compared)")
+        against = {True: "**loses**", False: "holds"}.get(r["loses_to_base"], "")
+        cells = [r["scene"]] + ([str(r["init"])] if several_inits else []) + [
+            r["class"], share, r["variant"], str(r["seeds"]),
+            _cell({"mean": r["completeness"], "std": r["completeness_std"]}, ".4g"),
+            _percent(r["vs_base"], 1), _percent(r["vs_reg"], 1), _share(r["missing"]), against]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _share(value: float | None) -> str:
+    return "n/a" if value is None else f"{100 * value:.1f} %"
 
 
 def _budget_table(rows: list[dict[str, Any]]) -> str:
@@ -367,20 +456,27 @@ def format_results(results: dict[str, Any]) -> str:
     """results.md: the table (:func:`format_table`), then the verdict, the means over scenes, the
     completeness per visibility class and Dense's appends, where there is something to show."""
     table = results["table"]
+    classes = results.get("class_completeness") or []
+    losses = class_loss_lines(classes)
     parts = [format_table(table)]
-    if results.get("verdicts"):
+    if results.get("verdicts") or losses:
         parts += ["### Verdict", "A variant is better (worse) than another on a scene only where the capped Chamfer "
                   "and the visible-surface Chamfer both fall (rise), level where both move by less than 1 %; where "
-                  "they move apart the table says so. Relative changes of the means over seeds.",
-                  _verdict_table(results["verdicts"])]
+                  "they move apart the table says so. Relative changes of the means over seeds."]
+        parts += [_verdict_table(results["verdicts"])] if results.get("verdicts") else []
+        parts += [CLASS_LOSS_RULE, "\n".join(losses)] if losses else []
     if len(results.get("scene_means") or []) > 1 and len(results["scene_means"][0]["scenes"]) > 1:
         parts += ["### Means over the scenes", "Relative changes of the means over scenes; \"worst scene vs reg\": the "
                   "largest relative change of the visible Chamfer against reg on a single scene.",
                   _means_table(results["scene_means"])]
-    if any(_mean(e, "visible_fraction") is not None for e in table):
-        parts += ["### Completeness by visibility class", "Uncapped completeness of the GT points seen by >= 4 views at "
-                  "incidence < 70 deg (many), by 1-3 (few), only at grazing angles (grazing); in brackets the class's "
-                  "share of the seen GT surface.", _classes_table(table)]
+    if classes:
+        parts += ["### Completeness by visibility class", "Per scene and class of the GT points seen by >= 4 views at "
+                  "incidence < 70 deg (many), by 1-3 (few), only at grazing angles (grazing): the class's share of the "
+                  "seen GT surface, each variant's uncapped completeness there (mean ± spread over seeds) with its "
+                  "relative change against base and reg (negative = better), and \"missing\": the share of the class's "
+                  "GT points farther than 2 % of the GT box diagonal from the mesh (mean over seeds). \"against base\": "
+                  "whether the variant loses the class (see the verdict); classes under 5 % of the seen surface are "
+                  "shown but not compared.", _classes_table(classes, _several_inits(table))]
     if results.get("dense_budget"):
         parts += ["### What Dense's appended Gaussians bought", "Visible-surface Chamfer against the same variant "
                   "without Dense, and that change per thousand Gaussians appended.", _budget_table(results["dense_budget"])]

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from polargs_plugin.ablation.artifacts import CURVES_NAME
-from polargs_plugin.ablation.gather import find_runs, gather
+from polargs_plugin.ablation.gather import CLASS_LOSS_RULE, class_loss_lines, find_runs, gather
 from polargs_plugin.ablation.variants import DESCRIPTIONS, VARIANTS
 from polargs_plugin.io import atomic_path, atomic_write
 from polargs_plugin.service.runs import SUMMARY_NAME
@@ -319,8 +319,10 @@ def _curves_figure(members: list[tuple[str, int, Path]], path: Path) -> Path | N
 
 
 # ------------------------------------------------------------------------------------ report
-def _scene_verdict(rows: list[dict[str, Any]], scene: str, init: str) -> list[str]:
-    """One line per judged pair of the scene: the verdict with both Chamfer figures."""
+def _scene_verdict(rows: list[dict[str, Any]], classes: list[dict[str, Any]], scene: str, init: str) -> list[str]:
+    """One line per judged pair of the scene: the verdict with both Chamfer figures; then one per
+    variant that loses a visibility class against base (``classes``: gather's class_completeness)."""
+    losses = class_loss_lines([r for r in classes if r["scene"] == scene and r["init"] == init], with_scene=False)
     lines = []
     for r in (r for r in rows if r["scene"] == scene and r["init"] == init):
         figures = ", ".join(f"{name} {100 * r[key]:+.1f} %" for key, name in (("capped", "Chamfer"),
@@ -329,7 +331,10 @@ def _scene_verdict(rows: list[dict[str, Any]], scene: str, init: str) -> list[st
                 "disagree": "neither better nor worse than (the Chamfer figures disagree)",
                 "capped only": "judged on the capped Chamfer only against"}[r["verdict"]]
         lines.append(f"- `{r['variant']}` is {word} `{r['reference']}`: {figures}")
-    return (["Verdict (better or worse only where both Chamfer figures agree):", ""] + lines + [""]) if lines else []
+    out = (["Verdict (better or worse only where both Chamfer figures agree):", ""] + lines + [""]) if lines else []
+    if losses:
+        out += [CLASS_LOSS_RULE, ""] + losses + [""]
+    return out
 
 
 def write_report(out: str | os.PathLike, results: dict[str, Any] | None = None, command: str | None = None) -> Path:
@@ -373,8 +378,10 @@ def _report_head(out: Path, results: dict[str, Any]) -> list[str]:
               "normal MAE = mean angle between rendered and GT normals inside the GT masks "
               "of every training view (GT normals ray-cast from the GT mesh where the dataset has none). "
               "Mean ± sample standard deviation over seeds; \"vs base\" / \"vs reg\": "
-              "relative change of the mean (negative = better). Per-run figures (also accuracy uncapped and the "
-              "fractions the cap dropped): results.csv, results.json.", ""]
+              "relative change of the mean (negative = better). Per visibility class (many, few, grazing views): "
+              "the class's share of the seen GT surface, the completeness there and \"missing\", the share of the "
+              "class's GT points farther than 2 % of the GT box diagonal from the mesh. Per-run figures (also "
+              "accuracy uncapped and the fractions the cap dropped): results.csv, results.json.", ""]
     return lines + ["## Variants", ""] + [f"- `{v}`: {DESCRIPTIONS[v]}" for v in VARIANTS] + [""]
 
 
@@ -400,7 +407,7 @@ def _scene_section(out: Path, results: dict[str, Any], runs: dict[str, Path], sc
                   f"dataset `{summary.get('dataset')}`.", ""]
     made = _metrics_figure(entries, members, figures / f"metrics_{tag}.png", UNITS)
     lines += ["### Chamfer and normal MAE", "", f"![Chamfer and normal MAE per variant]({made.relative_to(out)})", ""]
-    lines += _scene_verdict(results.get("verdicts") or [], scene, init)
+    lines += _scene_verdict(results.get("verdicts") or [], results.get("class_completeness") or [], scene, init)
     return lines + _scene_pictures(out, reps, members, runs, tag, seed_note)
 
 
