@@ -46,8 +46,10 @@ figures, one row each (their keys in metrics.json in brackets):
                                [chamfer_visible, completeness_visible, visible_fraction]
   completeness by view         uncapped completeness of the GT seen well (incidence below 70 deg) by
                                4 views or more (many), by 1-3 (few), or only at grazing angles
-                               (grazing), with each class's share of the seen GT
-                               [completeness_by_visibility, visibility_shares]
+                               (grazing), with each class's share of the seen GT and the share of
+                               the class's GT samples farther than 2 % of the GT box diagonal from
+                               the prediction (missing) [completeness_by_visibility,
+                               visibility_shares, missing_by_visibility, missing_dist]
   samples (pred / GT)          samples compared [num_pred_points, num_gt_points]
   normal MAE                   with --normals: mean angle in degrees between rendered and GT normals,
                                per view then averaged; GT normals ray-cast from the --gt mesh where the
@@ -121,8 +123,11 @@ def format_table(metrics: dict[str, Any]) -> str:
             rows.append(("visible surface", f"Chamfer {cd['chamfer_visible']:.5g} {unit} uncapped, completeness "
                          f"{cd['completeness_visible']:.5g} over the {100 * cd['visible_fraction']:.1f} % of GT some view sees"
                          f" ({cd.get('visibility_classes', {}).get('source', 'ground-truth depth maps')})"))
+            missing = {name: value for name, value in (cd.get("missing_by_visibility") or {}).items()
+                       if value is not None and not math.isnan(value)}
             rows.append(("completeness by view", ", ".join(
-                f"{name} {_figure(cd['completeness_by_visibility'][name])} ({100 * share:.0f} %)"
+                f"{name} {_figure(cd['completeness_by_visibility'][name])} ({100 * share:.0f} %"
+                + (f", {100 * missing[name]:.1f} % missing" if name in missing else "") + ")"
                 for name, share in cd["visibility_shares"].items())))
         rows.append(("samples (pred / GT)", f"{cd['num_pred_points']} / {cd['num_gt_points']}"))
     if metrics.get("normal_mae_deg") is not None:
