@@ -520,7 +520,7 @@ def chamfer_distance(
     """
     step = progress or (lambda name: None)
     region = _resolve_region(region, cull_views)
-    max_dist, fscore_threshold = _distance_thresholds(gt, max_dist, fscore_threshold)
+    max_dist, fscore_threshold, missing_dist = _distance_thresholds(gt, max_dist, fscore_threshold, missing_dist)
 
     step("sampling")
     gt_points, gt_faces = sample_surface_with_faces(gt, num_samples, seed)
@@ -543,8 +543,6 @@ def chamfer_distance(
     if with_depth:
         step("visibility classes")
         codes = _visibility_codes(all_gt_points, _face_normals(gt, gt_faces), cull_views, visibility_classes)
-        if missing_dist is None:
-            missing_dist = MISSING_FRACTION * _gt_diagonal(gt)
         figures.update(visible_surface_figures(figures["accuracy_uncapped"], to_pred_all, codes, visibility_classes,
                                                visibility_source, missing_dist))
     return {
@@ -572,20 +570,18 @@ def _resolve_region(region: str | None, cull_views: Sequence[View] | None) -> st
     return region
 
 
-def _gt_diagonal(gt: MeshLike) -> float:
-    """The diagonal of the GT mesh's bounding box."""
+def _distance_thresholds(gt: MeshLike, max_dist: float | None, fscore_threshold: float | None,
+                         missing_dist: float | None) -> tuple[float, float, float]:
+    """(max_dist, fscore_threshold, missing_dist), each given or its fraction of the GT
+    bounding-box diagonal."""
     gt_vertices, _ = _mesh_arrays(gt)
-    return float(np.linalg.norm(gt_vertices.max(0) - gt_vertices.min(0)))
-
-
-def _distance_thresholds(gt: MeshLike, max_dist: float | None, fscore_threshold: float | None) -> tuple[float, float]:
-    """(max_dist, fscore_threshold), each given or its fraction of the GT bounding-box diagonal."""
-    diagonal = _gt_diagonal(gt)
+    diagonal = float(np.linalg.norm(gt_vertices.max(0) - gt_vertices.min(0)))
+    missing_dist = MISSING_FRACTION * diagonal if missing_dist is None else float(missing_dist)
     max_dist = MAX_DIST_FRACTION * diagonal if max_dist is None else float(max_dist)
     fscore_threshold = FSCORE_FRACTION * diagonal if fscore_threshold is None else float(fscore_threshold)
     if not (max_dist > 0 and fscore_threshold > 0):
         raise ValueError(f"max_dist and fscore_threshold must be positive, got {max_dist}, {fscore_threshold}")
-    return max_dist, fscore_threshold
+    return max_dist, fscore_threshold, missing_dist
 
 
 def _restrict_to_region(

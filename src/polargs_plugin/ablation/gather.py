@@ -351,7 +351,7 @@ def class_completeness(table: list[dict[str, Any]]) -> list[dict[str, Any]]:
         base, reg = by_key.get((scene, "base", init)), by_key.get((scene, "reg", init))
         for name in VISIBILITY_CLASSES:
             key = f"completeness_{name}"
-            shares = [_mean(e, f"share_{name}") for e in entries if _mean(e, f"share_{name}") is not None]
+            shares = [share for share in (_mean(e, f"share_{name}") for e in entries) if share is not None]
             if not shares:
                 continue
             share = sum(shares) / len(shares)
