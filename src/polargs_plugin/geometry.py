@@ -18,9 +18,13 @@ over any batch of rays; :func:`depth_from_plane` applies the first to every pixe
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 
 import torch
 from torch import Tensor
+
+from polargs_plugin.plane_depth import plane_depth_fused, plane_distances_fused
+from polargs_plugin.threads import numba_path
 
 __all__ = [
     "SH_C0",
@@ -236,7 +240,10 @@ def plane_distances(normals_cam: Tensor, means: Tensor, world_to_camera: Tensor)
         world_to_camera: (4, 4) OpenCV world-to-camera transform.
 
     Returns:
-        (N,) distances, differentiable w.r.t. ``normals_cam`` and ``means``.
+        (N,) distances, differentiable w.r.t. ``normals_cam`` and ``means`` (and
+        ``world_to_camera`` where it requires a gradient: then by torch operations, as on CUDA;
+        otherwise, on CPU float tensors, the compiled pass of :mod:`polargs_plugin.plane_depth`,
+        the same values and gradients to the last bit).
 
     Example:
         The camera 5 units behind the world origin, a Gaussian at world z = 1 facing it:
@@ -247,6 +254,8 @@ def plane_distances(normals_cam: Tensor, means: Tensor, world_to_camera: Tensor)
         tensor([6.])
     """
     w2c = world_to_camera.to(means)
+    if numba_path(means) and normals_cam.dtype == means.dtype and not w2c.requires_grad:
+        return plane_distances_fused(normals_cam, means @ w2c[:3, :3].T, w2c[:3, 3])
     return _negative_dot(normals_cam, means @ w2c[:3, :3].T + w2c[:3, 3])
 
 
@@ -314,6 +323,26 @@ def _image_rays(K: Tensor, height: int, width: int, pixel_center: float) -> Tens
     return torch.stack([ray_x, ray_y, torch.ones_like(ray_x)], dim=-1)
 
 
+_RAYS_CACHED = 16  # cameras whose pixel rays _cached_image_rays keeps (a training's views, or most of them)
+_rays_cache: OrderedDict[tuple, Tensor] = OrderedDict()
+
+
+def _cached_image_rays(K: Tensor, height: int, width: int, pixel_center: float) -> Tensor:
+    """:func:`_image_rays` of a CPU ``K``, kept for the last few cameras: a training renders the
+    same few cameras over and over, and the rays are a dozen image-sized operations. Keyed by
+    K's values (a CPU read, no device sync), so an edited K never finds stale rays."""
+    key = (tuple(K.reshape(-1).tolist()), K.dtype, height, width, pixel_center)
+    rays = _rays_cache.get(key)
+    if rays is None:
+        rays = _image_rays(K, height, width, pixel_center)
+        _rays_cache[key] = rays
+        if len(_rays_cache) > _RAYS_CACHED:
+            _rays_cache.popitem(last=False)
+    else:
+        _rays_cache.move_to_end(key)
+    return rays
+
+
 def depth_from_plane(distance: Tensor, normal: Tensor, K: Tensor, pixel_center: float = 0.5) -> Tensor:
     """Camera z from a rendered plane distance and normal (PGSR's unbiased plane depth).
 
@@ -330,6 +359,11 @@ def depth_from_plane(distance: Tensor, normal: Tensor, K: Tensor, pixel_center: 
     Returns:
         (1, H, W) camera z, 0 where the ray is parallel to the plane or faces away.
 
+    Note:
+        On CPU float32/float64 tensors the compiled pass of :mod:`polargs_plugin.plane_depth`
+        runs (the same values and gradients to the last bit, no gradient w.r.t. ``K``);
+        elsewhere (CUDA, under ``torch.func`` transforms or tracing) these torch operations.
+
     Example:
         The plane z = 2 seen head-on (n = -z, d = 2) is at depth 2 at every pixel:
 
@@ -340,5 +374,9 @@ def depth_from_plane(distance: Tensor, normal: Tensor, K: Tensor, pixel_center: 
                  [2., 2.]]])
     """
     _, height, width = distance.shape
-    rays = _image_rays(K.to(distance), height, width, pixel_center)
+    fused = numba_path(distance) and normal.dtype == distance.dtype
+    rays = _cached_image_rays(K.detach().to(distance), height, width, pixel_center) if fused else \
+        _image_rays(K.to(distance), height, width, pixel_center)
+    if fused:
+        return plane_depth_fused(distance, normal, rays, _PLANE_EPS)
     return ray_plane_depth(distance[0], normal.permute(1, 2, 0), rays, min_cosine=_PLANE_EPS)[None]

@@ -22,6 +22,7 @@ from torch import Tensor
 from polargs_plugin.depth_normal import depth_normal_loss_fused
 from polargs_plugin.optics.single_view import SingleViewNormals
 from polargs_plugin.reflective_window import reflective_window_losses
+from polargs_plugin.scale_flatten import scale_loss_fused
 from polargs_plugin.ssim import gaussian_kernel1d, ssim_from_moments, ssim_map
 from polargs_plugin.threads import numba_path
 
@@ -486,7 +487,13 @@ def scale_loss(scales: Tensor) -> Tensor:
 
     Returns:
         Scalar, 0 for N = 0.
+
+    Note:
+        On CPU float32/float64 tensors the backward is the compiled pass of
+        :mod:`polargs_plugin.scale_flatten` (the same gradient to the last bit).
     """
     if scales.shape[0] == 0:
         return scales.sum()
+    if numba_path(scales) and scales.shape[-1] == 3:
+        return scale_loss_fused(scales)
     return scales.amin(dim=-1).mean()
