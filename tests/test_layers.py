@@ -36,9 +36,10 @@ LAYERS: list[set[str]] = [
     # PolarHooks, what a trainer calls
     {"hooks"},
     # the PolarGS modules (losses, photometric correction, densification) and mesh evaluation
-    {"losses", "correction", "densify", "depth_normal", "reflective_window", "ssim", "mesh", "metrics", "viz", "nearest"},
+    {"losses", "correction", "densify", "depth_normal", "reflective_window", "scale_flatten", "ssim", "mesh", "metrics", "viz",
+     "nearest"},
     # polarization optics, Gaussian geometry, the data contracts (and their compact storage) and the dataset readers
-    {"optics", "geometry", "types", "compact", "data"},
+    {"optics", "geometry", "plane_depth", "types", "compact", "data"},
     # files and errors, configuration, the thread policy
     {"io", "config", "threads"},
 ]
