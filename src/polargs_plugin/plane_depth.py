@@ -35,14 +35,19 @@ from polargs_plugin.threads import numba_scheduling
 __all__ = ["plane_depth_fused", "plane_distances_fused"]
 
 
+@numba.njit(inline="always")
+def _cosine(normal, rays, v, u):
+    """-(n . r) at pixel (v, u): the products, their sum in x, y, z order, then the negation (torch's order)."""
+    return -((normal[0, v, u] * rays[v, u, 0] + normal[1, v, u] * rays[v, u, 1]) + normal[2, v, u] * rays[v, u, 2])
+
+
 @numba.njit(parallel=True, cache=True)
 def _forward_kernel(distance, normal, rays, eps, depth):
     height, width = distance.shape
     zero = distance.dtype.type(0)
     for v in numba.prange(height):
         for u in range(width):
-            # -(n . r): products, then their sum in x, y, z order, then the negation (torch's order)
-            cosine = -((normal[0, v, u] * rays[v, u, 0] + normal[1, v, u] * rays[v, u, 1]) + normal[2, v, u] * rays[v, u, 2])
+            cosine = _cosine(normal, rays, v, u)
             depth[v, u] = distance[v, u] / max(cosine, eps) if cosine > eps else zero
 
 
@@ -52,7 +57,7 @@ def _backward_kernel(grad, distance, normal, rays, eps, grad_distance, grad_norm
     zero = distance.dtype.type(0)
     for v in numba.prange(height):
         for u in range(width):
-            cosine = -((normal[0, v, u] * rays[v, u, 0] + normal[1, v, u] * rays[v, u, 1]) + normal[2, v, u] * rays[v, u, 2])
+            cosine = _cosine(normal, rays, v, u)
             clamped = max(cosine, eps)
             g = grad[v, u] if cosine > eps else zero  # where's backward
             d = distance[v, u]
@@ -77,7 +82,7 @@ class _PlaneDepth(torch.autograd.Function):
         depth = np.empty_like(arrays[0])
         with numba_scheduling():
             _forward_kernel(*arrays, eps_typed, depth)
-        ctx.arrays, ctx.eps = arrays, eps_typed
+        ctx.arrays, ctx.eps, ctx.dtype = arrays, eps_typed, distance.dtype
         return torch.from_numpy(depth)[None]
 
     @staticmethod
@@ -86,7 +91,7 @@ class _PlaneDepth(torch.autograd.Function):
         distance, normal, rays = ctx.arrays
         grad_distance, grad_normal = np.empty_like(distance), np.empty_like(normal)
         with numba_scheduling():
-            _backward_kernel(_np(grad[0].to(torch.from_numpy(distance).dtype)), distance, normal, rays, ctx.eps,
+            _backward_kernel(_np(grad[0].to(ctx.dtype)), distance, normal, rays, ctx.eps,
                              grad_distance, grad_normal)
         return torch.from_numpy(grad_distance)[None], torch.from_numpy(grad_normal), None, None
 
@@ -131,7 +136,7 @@ class _PlaneDistances(torch.autograd.Function):
         distances = np.empty(arrays[0].shape[0], arrays[0].dtype)
         with numba_scheduling():
             _distance_forward_kernel(*arrays, distances)
-        ctx.arrays = arrays
+        ctx.arrays, ctx.dtype = arrays, normals.dtype
         return torch.from_numpy(distances)
 
     @staticmethod
@@ -140,7 +145,7 @@ class _PlaneDistances(torch.autograd.Function):
         normals, rotated, translation = ctx.arrays
         grad_normals, grad_rotated = np.empty_like(normals), np.empty_like(rotated)
         with numba_scheduling():
-            _distance_backward_kernel(_np(grad.to(torch.from_numpy(normals).dtype)), normals, rotated, translation,
+            _distance_backward_kernel(_np(grad.to(ctx.dtype)), normals, rotated, translation,
                                       grad_normals, grad_rotated)
         return torch.from_numpy(grad_normals), torch.from_numpy(grad_rotated), None
 

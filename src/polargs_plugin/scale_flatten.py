@@ -38,7 +38,7 @@ def _backward_kernel(scales, share, grad):
 class _ScaleLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, scales: Tensor) -> Tensor:
-        ctx.scales = scales.detach().contiguous().numpy()
+        ctx.scales, ctx.dtype = scales.detach().contiguous().numpy(), scales.dtype
         return scales.detach().amin(dim=-1).mean()
 
     @staticmethod
@@ -46,7 +46,7 @@ class _ScaleLoss(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         scales = ctx.scales
         # The mean's backward, g / N, by the same torch division.
-        share = (grad.to(torch.from_numpy(scales).dtype) / scales.shape[0]).item()
+        share = (grad.to(ctx.dtype) / scales.shape[0]).item()
         out = np.empty_like(scales)
         with numba_scheduling():
             _backward_kernel(scales, scales.dtype.type(share), out)
