@@ -56,6 +56,9 @@ Examples:
                  --executor submitit --slurm-partition gpu --gpus-per-task 1 --cpus-per-task 8 --timeout-min 120
   polargs ablate --status runs/paper                        # done / running / failed / missing, with logs
   polargs ablate --out runs/ablation --gather-only          # table + report from the run folders
+  polargs ablate --trainer 2dgs=~/src/2d-gaussian-splatting --scenes bumpy_mixed --out runs/plugin-2dgs
+                                                            # an upstream trainer alone and with PolarGS
+                                                            # (docs/adapters/plugin-ablation.md)
 """
 
 
@@ -114,7 +117,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--scenes", default=None, metavar="A,B,...", help="comma-separated scenes (see above)")
-    p.add_argument("--variants", default="all", metavar="V,...", help=f"comma-separated subset of {','.join(VARIANTS)}, or all (default)")
+    p.add_argument("--variants", default="all", metavar="V,...", help=f"comma-separated subset of {','.join(VARIANTS)}, or all (default); with --trainer: alone, polargs")
     p.add_argument("--seeds", default="0", metavar="S,...", help="comma-separated training seeds (default 0)")
     p.add_argument("--out", type=Path, metavar="DIR", help="the ablation folder (run folders, logs, results, report); required")
     p.add_argument("--gather-only", action="store_true", help="run nothing: gather the run folders of OUT and write the report")
@@ -143,6 +146,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="more sbatch options, e.g. account=proj qos=high constraint=a100 (repeatable)")
     g.add_argument("--slurm-setup", action="append", default=[], metavar="CMD",
                    help="shell line run in the job before python, e.g. 'module load cuda' (repeatable)")
+    plug = p.add_argument_group("plug-in ablation (docs/adapters/plugin-ablation.md)")
+    plug.add_argument("--trainer", default=None, metavar="NAME=CHECKOUT",
+                      help="instead of the reference trainer: an upstream trainer's checkout, patched (graphdeco, "
+                      "graphdeco-2023, gof, pgsr, 2dgs), trained to the end of its own schedule x --factor on each scene, "
+                      "alone and with PolarGS, on the CPU stand-ins of its extensions")
     wait = g.add_mutually_exclusive_group()
     wait.add_argument("--wait", dest="wait", action="store_true", default=None,
                       help="wait for the jobs, then gather and write the report (default with the local and debug clusters)")
@@ -391,8 +399,35 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
     return shlex.join(parts)
 
 
+def _plugin_ablation(args: argparse.Namespace) -> int:
+    """``--trainer NAME=CHECKOUT``: the upstream trainer alone and with PolarGS on each scene."""
+    from polargs_plugin.service.plugin import PluginRequest, plugin_ablation
+
+    name, sep, checkout = args.trainer.partition("=")
+    if not sep or not name or not checkout:
+        raise PolarInputError("--trainer", f"expected NAME=CHECKOUT, got {args.trainer!r}")
+    for flag, value, default in (("--seeds", args.seeds, "0"),
+                                 ("--executor", args.executor, "local"), ("--preset", args.preset, "cpu")):
+        if value != default:
+            raise PolarInputError(flag, "does not apply to --trainer (the trainer's own seed, this machine, "
+                                        "the cpu preset's schedule x --factor)")
+    variants = ("alone", "polargs") if args.variants == "all" else tuple(_split(args.variants, "--variants"))
+    size = (128, 128) if args.size is None else tuple(args.size)
+    request = PluginRequest(trainer=name, checkout=Path(checkout), out=args.out,
+                            scenes=tuple(_split(args.scenes or "bumpy_mixed", "--scenes")), variants=variants,
+                            factor=1 / 6 if args.factor is None else args.factor, views=args.views or 24,
+                            width=size[0], height=size[1], polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
+                            eval_samples=args.eval_samples, command=command_line_of(args, args.command))
+    records = plugin_ablation(request, progress=lambda message: print(message, flush=True))
+    print((args.out / "results.md").read_text())
+    return 1 if any("error" in r for r in records) else 0
+
+
 def run(args: argparse.Namespace) -> int:
     from polargs_plugin.ablation.variants import parse_variants
+
+    if args.trainer is not None and args.out is not None:
+        return _plugin_ablation(args)
 
     if args.status is not None:
         from polargs_plugin.ablation.executors import ExecutorUnavailable, format_status, grid_status

@@ -11,13 +11,15 @@ are served to every trainer, but only where the package they stand in for is not
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from polargs_plugin.dryrun.finder import is_installed
 
-__all__ = ["TrainerSpec", "TRAINERS", "schedule_arguments", "gsplat_arguments", "trainer_arguments", "dense_settings",
+__all__ = ["TrainerSpec", "TRAINERS", "schedule_arguments", "shrunk_schedule_arguments", "shrink_literals",
+           "UPSTREAM_SCHEDULE", "gsplat_arguments", "trainer_arguments", "dense_settings",
            "STANDINS", "FALLBACKS", "served_modules"]
 
 STANDINS = "polargs_plugin.dryrun.standins"
@@ -64,6 +66,12 @@ class TrainerSpec:
         attributes: ``"module:attribute"`` of an installed package -> ``"stand-in module:attribute"``
             that replaces it in the dry run's process.
         subcommand: the script's first argument (simple_trainer's strategy preset).
+        upstream_options: ``train.py`` options beyond the shared schedule that name an iteration,
+            with their upstream defaults: a run of the whole schedule shrunk by a factor
+            (:func:`shrunk_schedule_arguments`) scales them by it.
+        hard_coded: statements of the training script that hold an iteration number as a literal
+            (``iteration > 7000``): a shrunk run scales the number in its copy of the script
+            (:func:`shrink_literals`).
     """
 
     name: str
@@ -76,6 +84,8 @@ class TrainerSpec:
     script: str = "train.py"
     attributes: dict[str, str] = field(default_factory=dict)
     subcommand: tuple[str, ...] = field(default=())
+    upstream_options: dict[str, int] = field(default_factory=dict)
+    hard_coded: tuple[str, ...] = field(default=())
 
 
 TRAINERS: dict[str, TrainerSpec] = {
@@ -100,6 +110,7 @@ TRAINERS: dict[str, TrainerSpec] = {
             {"diff_gaussian_rasterization": f"{STANDINS}.gof", **_KNN},
             "gof",
             from_middle=("--distortion_from_iter", "--depth_normal_from_iter"),
+            upstream_options={"--distortion_from_iter": 15000, "--depth_normal_from_iter": 15000},
         ),
         TrainerSpec(
             "pgsr",
@@ -107,12 +118,14 @@ TRAINERS: dict[str, TrainerSpec] = {
             {"diff_plane_rasterization": f"{STANDINS}.plane", **_KNN},
             "pgsr",
             from_middle=("--single_view_weight_from_iter", "--multi_view_weight_from_iter"),
+            upstream_options={"--single_view_weight_from_iter": 7000, "--multi_view_weight_from_iter": 7000},
         ),
         TrainerSpec(
             "2dgs",
             "hbb1/2d-gaussian-splatting (1920a23)",
             {"diff_surfel_rasterization": f"{STANDINS}.surfel", **_KNN},
             "twodgs",
+            hard_coded=("iteration > 7000", "iteration > 3000"),  # L_normal's and L_dist's starts
         ),
         TrainerSpec(
             "gsplat",
@@ -160,6 +173,53 @@ def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> lis
         *spec.extra_arguments,
         *[item for flag in spec.from_middle for item in (flag, str(iterations // 2))],
     ]
+
+
+#: The graphdeco family's schedule (graphdeco, GOF, PGSR and 2DGS share these defaults).
+UPSTREAM_SCHEDULE = {"iterations": 30_000, "densify_from_iter": 500, "densify_until_iter": 15_000,
+                     "densification_interval": 100, "opacity_reset_interval": 3000}
+
+
+def shrunk_schedule_arguments(spec: TrainerSpec, factor: float) -> list[str]:
+    """``train.py`` arguments of the graphdeco family for its whole schedule with every iteration
+    count multiplied by ``factor`` (``UPSTREAM_SCHEDULE`` and the trainer's
+    ``upstream_options``; intervals at least 1), and no opacity reset, as the reference trainer's
+    CPU preset: after a reset the opacities need about a hundred steps to climb back above the
+    prune threshold (upstream's densification interval), and a shrunk interval prunes them before
+    (in 2DGS at 1/6 every Gaussian). The run saves its Gaussians at the last iteration and a
+    checkpoint there, and renders no test views.
+
+    >>> shrunk_schedule_arguments(TRAINERS["graphdeco-2023"], 1 / 6)[:6]
+    ['--iterations', '5000', '--position_lr_max_steps', '5000', '--densify_from_iter', '83']
+    """
+    if spec.family != "inria":
+        raise ValueError(f"{spec.name}: only the graphdeco family's schedule can be shrunk here")
+    scaled = {name: max(1, round(value * factor)) for name, value in UPSTREAM_SCHEDULE.items()}
+    iterations = scaled["iterations"]
+    return [
+        "--iterations", str(iterations),
+        "--position_lr_max_steps", str(iterations),
+        *[item for name in ("densify_from_iter", "densify_until_iter", "densification_interval")
+          for item in (f"--{name}", str(scaled[name]))],
+        "--opacity_reset_interval", str(iterations + 1),
+        "--test_iterations", str(iterations + 1),
+        "--save_iterations", str(iterations),
+        "--checkpoint_iterations", str(iterations),
+        *spec.extra_arguments,
+        *[item for flag, value in spec.upstream_options.items() for item in (flag, str(max(1, round(value * factor))))],
+    ]
+
+
+def shrink_literals(spec: TrainerSpec, text: str, factor: float) -> tuple[str, list[str]]:
+    """``text`` (the training script) with the iteration of each of ``spec.hard_coded``'s
+    statements multiplied by ``factor``, and the statements it does not hold (left as they are)."""
+    missing = []
+    for statement in spec.hard_coded:
+        head, _, number = statement.rpartition(" ")
+        text, count = re.subn(re.escape(statement) + r"(?!\d)", f"{head} {max(1, round(int(number) * factor))}", text)
+        if not count:
+            missing.append(statement)
+    return text, missing
 
 
 def gsplat_arguments(spec: TrainerSpec, iterations: int, interval: int) -> list[str]:

@@ -31,7 +31,7 @@ from polargs_plugin.service.runs import SUMMARY_NAME
 from polargs_plugin.service.scenes import SceneRequest, generate_scene_folder
 
 __all__ = ["DryRunRequest", "Check", "DryRunResult", "dry_run", "verdict", "describe", "write_summary", "WARMUP_STEPS",
-           "SUMMARY_FORMAT"]
+           "SUMMARY_FORMAT", "launch_trainer", "train_script", "environment", "free_port"]
 
 #: Steps left out of the step-time ratio (numba compilation, first allocations).
 WARMUP_STEPS = 10
@@ -106,7 +106,7 @@ class DryRunResult:
         return all(check.ok is not False for check in self.checks)
 
 
-def _train_script(checkout: Path, trainer: str) -> tuple[Path, str]:
+def train_script(checkout: Path, trainer: str) -> tuple[Path, str]:
     if trainer not in TRAINERS:
         raise PolarInputError("--trainer", f"unknown trainer {trainer!r} (choose one of {', '.join(sorted(TRAINERS))})")
     spec = TRAINERS[trainer]
@@ -151,7 +151,7 @@ def _scene(request: DryRunRequest) -> Path:
     return folder
 
 
-def _free_port() -> int:
+def free_port() -> int:
     """A free local TCP port for the trainer's viewer socket (graphdeco-family ``--port``)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
@@ -169,7 +169,7 @@ def _package_paths() -> list[str]:
     return list(dict.fromkeys(paths))
 
 
-def _environment(scene: Path, settings: Path) -> dict[str, str]:
+def environment(scene: Path, settings: Path) -> dict[str, str]:
     env = dict(os.environ)
     env.update(POLARGS_DATA=str(scene), POLARGS_PRESET="synthetic", POLARGS_CONFIG=str(settings))
     env["PYTHONPATH"] = os.pathsep.join([*_package_paths(), *filter(None, [env.get("PYTHONPATH")])])
@@ -179,22 +179,32 @@ def _environment(scene: Path, settings: Path) -> dict[str, str]:
 def _run(label: str, script: Path, request: DryRunRequest, scene: Path, env: dict[str, str], port: int
          ) -> tuple[dict, Path]:
     """One launch; returns its report (a failure report when it wrote none) and its log."""
-    model_path = request.workdir / f"run-{label}"
-    report_path = request.workdir / f"report-{label}.json"
-    log_path = request.workdir / f"{label}.log"
-    report_path.unlink(missing_ok=True)
     spec = TRAINERS[request.trainer]
+    model_path = request.workdir / f"run-{label}"
     arguments = [*trainer_arguments(spec, scene / "colmap", model_path, port, request.iterations, request.interval),
                  *request.train_arguments]
-    command = [sys.executable, "-m", "polargs_plugin.dryrun.launch", "--trainer", request.trainer,
-               "--checkout", str(request.checkout), "--script", str(script), "--report", str(report_path),
+    return launch_trainer(request.trainer, request.checkout, script, arguments, model_path, request.workdir, label, env,
+                          request.timeout)
+
+
+def launch_trainer(trainer: str, checkout: Path, script: Path, arguments: Sequence[str], model_path: Path, workdir: Path,
+                   label: str, env: dict[str, str], timeout: float) -> tuple[dict, Path]:
+    """Run ``script`` (the checkout's training script or a copy) with ``arguments`` in the dry
+    run's process (:mod:`polargs_plugin.dryrun.launch`), its output in ``model_path``, its report
+    and log in ``workdir`` under ``label``; returns the report (a failure report when it wrote
+    none) and the log's path."""
+    report_path = workdir / f"report-{label}.json"
+    log_path = workdir / f"{label}.log"
+    report_path.unlink(missing_ok=True)
+    command = [sys.executable, "-m", "polargs_plugin.dryrun.launch", "--trainer", trainer,
+               "--checkout", str(checkout), "--script", str(script), "--report", str(report_path),
                "--model-path", str(model_path), "--", *arguments]
     with open(log_path, "w") as log:
         try:
-            subprocess.run(command, cwd=request.checkout, env=env, stdout=log, stderr=subprocess.STDOUT,
-                           timeout=request.timeout, check=False)
+            subprocess.run(command, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=timeout,
+                           check=False)
         except subprocess.TimeoutExpired:
-            return {"finished": False, "error": f"no result within {request.timeout:.0f} s"}, log_path
+            return {"finished": False, "error": f"no result within {timeout:.0f} s"}, log_path
     if not report_path.is_file():
         return {"finished": False, "error": f"the run wrote no report (see {log_path})"}, log_path
     return json.loads(report_path.read_text()), log_path
@@ -214,14 +224,14 @@ def dry_run(request: DryRunRequest, progress: Callable[[str], None] | None = Non
     request = replace(request, checkout=request.checkout.resolve(), workdir=request.workdir.resolve())
     if request.iterations < 4 * request.interval or request.interval < 1:
         raise PolarInputError("--iters", f"needs at least 4 intervals of {request.interval} iterations")
-    script, text = _train_script(request.checkout, request.trainer)
+    script, text = train_script(request.checkout, request.trainer)
     request.workdir.mkdir(parents=True, exist_ok=True)
     say(f"scene: {request.scene}, {request.views} views of {request.width}x{request.height}")
     scene = _scene(request)
     settings = request.workdir / "polargs_settings.json"
     with atomic_write(settings) as handle:
         json.dump(dense_settings(request.iterations, request.interval), handle, indent=1)
-    env, port = _environment(scene, settings), _free_port()
+    env, port = environment(scene, settings), free_port()
     runs = [("patched", script)]
     if request.compare:
         unpatched = request.workdir / f"{script.stem}_unpatched.py"

@@ -47,4 +47,21 @@ class Scene:
     def save(self, iteration):
         folder = os.path.join(self.model_path, "point_cloud", f"iteration_{iteration}")
         os.makedirs(folder, exist_ok=True)
-        torch.save(self.gaussians.capture()[1:7], os.path.join(folder, "point_cloud.pt"))
+        _write_ply(self.gaussians, os.path.join(folder, "point_cloud.ply"))
+
+
+def _write_ply(gaussians, path):
+    """The upstream PLY layout: x y z, nx ny nz, f_dc_*, f_rest_* (channel-major), opacity, scale_*, rot_*."""
+    g = gaussians
+    rest = g._features_rest.detach().transpose(1, 2).flatten(start_dim=1)
+    columns = [g._xyz.detach(), torch.zeros_like(g._xyz), g._features_dc.detach()[:, 0], rest, g._opacity.detach(),
+               g._scaling.detach(), g._rotation.detach()]
+    values = torch.cat(columns, dim=1).cpu().numpy().astype("<f4")
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+             *[f"f_rest_{i}" for i in range(rest.shape[1])], "opacity", "scale_0", "scale_1", "scale_2",
+             "rot_0", "rot_1", "rot_2", "rot_3"]
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(values)}",
+              *[f"property float {name}" for name in names], "end_header"]
+    with open(path, "wb") as handle:
+        handle.write(("\n".join(header) + "\n").encode())
+        handle.write(np.ascontiguousarray(values).tobytes())
