@@ -189,8 +189,8 @@ def shrunk_schedule_arguments(spec: TrainerSpec, factor: float) -> list[str]:
     (in 2DGS at 1/6 every Gaussian). The run saves its Gaussians at the last iteration and a
     checkpoint there, and renders no test views.
 
-    >>> shrunk_schedule_arguments(TRAINERS["graphdeco-2023"], 1 / 6)[:6]
-    ['--iterations', '5000', '--position_lr_max_steps', '5000', '--densify_from_iter', '83']
+    >>> " ".join(shrunk_schedule_arguments(TRAINERS["graphdeco-2023"], 1 / 6)[:6])
+    '--iterations 5000 --position_lr_max_steps 5000 --densify_from_iter 83'
     """
     if spec.family != "inria":
         raise ValueError(f"{spec.name}: only the graphdeco family's schedule can be shrunk here")
