@@ -91,6 +91,9 @@ def test_refusals_name_the_option(tmp_path: Path) -> None:
         plugin_ablation(PluginRequest(trainer="graphdeco", checkout=tmp_path, out=tmp_path / "out", variants=("full",)))
     with pytest.raises(PolarInputError, match="--factor"):
         plugin_ablation(PluginRequest(trainer="graphdeco", checkout=tmp_path, out=tmp_path / "out", factor=2.0))
+    with pytest.raises(PolarInputError, match="--scenes.*unknown synthetic scene 'nope'"):
+        plugin_ablation(PluginRequest(trainer="graphdeco", checkout=_patched_checkout(tmp_path / "p"), out=tmp_path / "out",
+                                      scenes=("nope",)))
     (tmp_path / "train.py").write_text("print('unpatched')\n")
     with pytest.raises(PolarInputError, match="is not patched"):
         plugin_ablation(PluginRequest(trainer="graphdeco", checkout=tmp_path, out=tmp_path / "out"))

@@ -101,14 +101,14 @@ def plugin_settings(factor: float) -> dict[str, Any]:
 
 
 def _scene_request(name: str, request: PluginRequest):
-    from polargs_plugin.data.family import parse_family
+    from polargs_plugin.data.family import family_name, parse_family
     from polargs_plugin.service.scenes import SceneRequest
 
     if name.startswith("family:"):
         seed = parse_family(name)
         if seed is None or seed < 0:
             raise PolarInputError("--scenes", f"scene {name!r}: a family scene is family:SEED with SEED an integer >= 0")
-        return SceneRequest("family", seed=seed), f"family-{seed}"
+        return SceneRequest("family", seed=seed), family_name(seed)
     return SceneRequest(name, views=request.views, width=request.width, height=request.height), name
 
 
@@ -119,7 +119,10 @@ def _scene_folder(name: str, request: PluginRequest) -> Path:
     scene, label = _scene_request(name, request)
     folder = request.out / "scenes" / label
     if not (folder / "colmap" / "sparse" / "0" / "cameras.txt").is_file():
-        generate_scene_folder(scene, folder, overwrite=folder.exists(), export="colmap")
+        try:
+            generate_scene_folder(scene, folder, overwrite=folder.exists(), export="colmap")
+        except ValueError as err:  # an unknown scene name, a bad size
+            raise PolarInputError("--scenes", str(err)) from None
     return folder
 
 
@@ -175,11 +178,10 @@ def evaluate_saved(ply: Path, scene: Path, cell: Path, eval_samples: int = 1_000
             "ply": str(ply)}
 
 
-def _run_cell(request: PluginRequest, scene_name: str, variant: str, scripts: dict[str, Path], env: dict[str, str],
+def _run_cell(request: PluginRequest, scene: Path, variant: str, scripts: dict[str, Path], env: dict[str, str],
               say: Callable[[str], None]) -> dict[str, Any]:
     from polargs_plugin.dryrun.trainers import TRAINERS, shrunk_schedule_arguments
 
-    scene = _scene_folder(scene_name, request)
     cell = request.out / "runs" / f"{scene.name}__{variant}"
     done = cell / CELL_NAME
     if done.is_file():
@@ -233,14 +235,15 @@ def plugin_ablation(request: PluginRequest, progress: Callable[[str], None] | No
     settings = request.out / "polargs_settings.json"
     write_json(settings, {"polar": _merged(plugin_settings(request.factor)["polar"], request.polar_overrides)})
     env = environment(request.out, settings)
+    scenes = [_scene_folder(name, request) for name in request.scenes]  # a bad name fails before any training
     records = []
-    for scene in request.scenes:
+    for scene in scenes:
         for variant in request.variants:
             try:
                 records.append(_run_cell(request, scene, variant, scripts, env, say))
             except PolarInputError as err:  # the other cells go on; a later command retries this one
-                say(f"FAILED {scene} / {variant}: {err}")
-                records.append({"scene": scene, "variant": variant, "trainer": request.trainer, "error": str(err)})
+                say(f"FAILED {scene.name} / {variant}: {err}")
+                records.append({"scene": scene.name, "variant": variant, "trainer": request.trainer, "error": str(err)})
     failed = [r for r in records if "error" in r]
     cells = [json.loads(p.read_text()) for p in sorted((request.out / "runs").glob(f"*/{CELL_NAME}"))] + failed
     write_json(request.out / "results.json", {
