@@ -28,8 +28,7 @@ def _options(arguments: list[str]) -> dict[str, str]:
 def test_the_shrunk_schedule_scales_every_upstream_count() -> None:
     options = _options(shrunk_schedule_arguments(TRAINERS["gof"], 0.1))
     for name, value in UPSTREAM_SCHEDULE.items():
-        if name != "opacity_reset_interval":
-            assert options[f"--{name}"] == str(round(value * 0.1))
+        assert options[f"--{name}"] == str(round(value * 0.1))
     assert int(options["--opacity_reset_interval"]) > 3000  # no reset
     assert options["--position_lr_max_steps"] == options["--save_iterations"] == "3000"
     assert options["--distortion_from_iter"] == options["--depth_normal_from_iter"] == "1500"  # GOF's 15000

@@ -411,13 +411,17 @@ def _plugin_ablation(args: argparse.Namespace) -> int:
         if value != default:
             raise PolarInputError(flag, "does not apply to --trainer (the trainer's own seed, this machine, "
                                         "the cpu preset's schedule x --factor)")
-    variants = ("alone", "polargs") if args.variants == "all" else tuple(_split(args.variants, "--variants"))
-    size = (128, 128) if args.size is None else tuple(args.size)
+    given: dict[str, Any] = {"factor": args.factor, "views": args.views}  # None: the request's default
+    if args.variants != "all":
+        given["variants"] = tuple(_split(args.variants, "--variants"))
+    if args.scenes is not None:
+        given["scenes"] = tuple(_split(args.scenes, "--scenes"))
+    if args.size is not None:
+        given["width"], given["height"] = args.size
     request = PluginRequest(trainer=name, checkout=Path(checkout), out=args.out,
-                            scenes=tuple(_split(args.scenes or "bumpy_mixed", "--scenes")), variants=variants,
-                            factor=1 / 6 if args.factor is None else args.factor, views=args.views or 24,
-                            width=size[0], height=size[1], polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
-                            eval_samples=args.eval_samples, command=command_line_of(args, args.command))
+                            polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
+                            eval_samples=args.eval_samples, command=command_line_of(args, args.command),
+                            **{key: value for key, value in given.items() if value is not None})
     records = plugin_ablation(request, progress=lambda message: print(message, flush=True))
     print((args.out / "results.md").read_text())
     return 1 if any("error" in r for r in records) else 0

@@ -175,9 +175,15 @@ def schedule_arguments(spec: TrainerSpec, iterations: int, interval: int) -> lis
     ]
 
 
-#: The graphdeco family's schedule (graphdeco, GOF, PGSR and 2DGS share these defaults).
+#: The graphdeco family's schedule (graphdeco, GOF, PGSR and 2DGS share these defaults); its
+#: opacity reset (every 3000) is left out of a shrunk run (:func:`shrunk_schedule_arguments`).
 UPSTREAM_SCHEDULE = {"iterations": 30_000, "densify_from_iter": 500, "densify_until_iter": 15_000,
-                     "densification_interval": 100, "opacity_reset_interval": 3000}
+                     "densification_interval": 100}
+
+
+def _scaled(iteration: int, factor: float) -> int:
+    """An upstream iteration count in a run shrunk by ``factor`` (at least 1)."""
+    return max(1, round(iteration * factor))
 
 
 def shrunk_schedule_arguments(spec: TrainerSpec, factor: float) -> list[str]:
@@ -189,24 +195,21 @@ def shrunk_schedule_arguments(spec: TrainerSpec, factor: float) -> list[str]:
     (in 2DGS at 1/6 every Gaussian). The run saves its Gaussians at the last iteration and a
     checkpoint there, and renders no test views.
 
-    >>> " ".join(shrunk_schedule_arguments(TRAINERS["graphdeco-2023"], 1 / 6)[:6])
-    '--iterations 5000 --position_lr_max_steps 5000 --densify_from_iter 83'
+    >>> " ".join(shrunk_schedule_arguments(TRAINERS["graphdeco-2023"], 1 / 6)[:4])
+    '--iterations 5000 --densify_from_iter 83'
     """
     if spec.family != "inria":
         raise ValueError(f"{spec.name}: only the graphdeco family's schedule can be shrunk here")
-    scaled = {name: max(1, round(value * factor)) for name, value in UPSTREAM_SCHEDULE.items()}
-    iterations = scaled["iterations"]
+    iterations = _scaled(UPSTREAM_SCHEDULE["iterations"], factor)
     return [
-        "--iterations", str(iterations),
+        *[item for name, value in UPSTREAM_SCHEDULE.items() for item in (f"--{name}", str(_scaled(value, factor)))],
         "--position_lr_max_steps", str(iterations),
-        *[item for name in ("densify_from_iter", "densify_until_iter", "densification_interval")
-          for item in (f"--{name}", str(scaled[name]))],
         "--opacity_reset_interval", str(iterations + 1),
         "--test_iterations", str(iterations + 1),
         "--save_iterations", str(iterations),
         "--checkpoint_iterations", str(iterations),
         *spec.extra_arguments,
-        *[item for flag, value in spec.upstream_options.items() for item in (flag, str(max(1, round(value * factor))))],
+        *[item for flag, value in spec.upstream_options.items() for item in (flag, str(_scaled(value, factor)))],
     ]
 
 
@@ -216,7 +219,7 @@ def shrink_literals(spec: TrainerSpec, text: str, factor: float) -> tuple[str, l
     missing = []
     for statement in spec.hard_coded:
         head, _, number = statement.rpartition(" ")
-        text, count = re.subn(re.escape(statement) + r"(?!\d)", f"{head} {max(1, round(int(number) * factor))}", text)
+        text, count = re.subn(re.escape(statement) + r"(?!\d)", f"{head} {_scaled(int(number), factor)}", text)
         if not count:
             missing.append(statement)
     return text, missing

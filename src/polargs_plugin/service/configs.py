@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "SCHEDULES", "PRESETS", "SWITCHES", "Settings", "read_settings", "apply_overrides", "polar_config",
-    "train_config", "resolve_device", "ENV_PRESET", "ENV_CONFIG", "ENV_KEEP_NATIVE", "config_from_environment",
+    "train_config", "changed_fields", "resolve_device", "ENV_PRESET", "ENV_CONFIG", "ENV_KEEP_NATIVE", "config_from_environment",
 ]
 
 #: Training schedules: ``cpu`` (the vanilla schedule x factor, minutes on a CPU), ``paper`` (30k).
@@ -120,12 +120,12 @@ def apply_overrides(config: PolarConfig, overrides: Mapping[str, Any], source: s
     return _updated(copy.deepcopy(config), overrides, "polar", source)
 
 
-def _changed(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+def changed_fields(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
     """The entries of the nested dict ``b`` that differ from ``a``."""
     out = {}
     for key, value in b.items():
         if isinstance(value, dict):
-            sub = _changed(a[key], value)
+            sub = changed_fields(a[key], value)
             if sub:
                 out[key] = sub
         elif a[key] != value:
@@ -154,7 +154,7 @@ def polar_config(
     if factor is not None:
         # the schedule fields cpu_demo scales (whatever they are): taken from it, onto the preset
         scaled = PolarConfig.cpu_demo(polar_schedule_factor(factor)).to_dict()
-        config.update(_changed(PolarConfig.synthetic().to_dict(), scaled))
+        config.update(changed_fields(PolarConfig.synthetic().to_dict(), scaled))
     config = apply_overrides(config, overrides or {}, source)
     for name in switches:
         section, name_of_field = SWITCHES[name]

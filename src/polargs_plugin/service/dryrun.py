@@ -107,6 +107,9 @@ class DryRunResult:
 
 
 def train_script(checkout: Path, trainer: str) -> tuple[Path, str]:
+    """The checkout's training script for ``trainer`` and its text, refused (PolarInputError
+    naming the file) when missing, unpatched, not compilable or importing modules this
+    environment lacks."""
     if trainer not in TRAINERS:
         raise PolarInputError("--trainer", f"unknown trainer {trainer!r} (choose one of {', '.join(sorted(TRAINERS))})")
     spec = TRAINERS[trainer]
@@ -170,6 +173,8 @@ def _package_paths() -> list[str]:
 
 
 def environment(scene: Path, settings: Path) -> dict[str, str]:
+    """The environment of a launch: this one, with the scene (``POLARGS_DATA``), the synthetic
+    preset, the PolarGS settings file and the paths that make the package importable."""
     env = dict(os.environ)
     env.update(POLARGS_DATA=str(scene), POLARGS_PRESET="synthetic", POLARGS_CONFIG=str(settings))
     env["PYTHONPATH"] = os.pathsep.join([*_package_paths(), *filter(None, [env.get("PYTHONPATH")])])

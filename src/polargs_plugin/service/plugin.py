@@ -78,26 +78,16 @@ class PluginRequest:
     command: str | None = None
 
 
-def _merged(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for key, value in overrides.items():
-        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-    return out
-
-
-def plugin_settings(factor: float) -> dict[str, Any]:
+def plugin_settings(factor: float, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """The PolarGS settings of the patched run (``POLARGS_CONFIG`` over the synthetic preset): the
-    CPU preset's schedules for a vanilla schedule ``factor`` (Dense's window and interval, L_dn's
-    start, L_n's end; :meth:`~polargs_plugin.config.PolarConfig.cpu_demo`)."""
-    from polargs_plugin.config import PolarConfig, polar_schedule_factor
+    fields in which a reference run's PolarConfig at the vanilla schedule ``factor`` differs from
+    the preset (the CPU preset's schedules: Dense's window and interval, L_dn's start, L_n's end),
+    with ``overrides`` (``--polar-set``, checked here) set after them."""
+    from polargs_plugin.config import PolarConfig
+    from polargs_plugin.service.configs import changed_fields, polar_config
 
-    config = PolarConfig.cpu_demo(polar_schedule_factor(factor))
-    losses = {"depth_normal_from_iter": config.losses.depth_normal_from_iter}
-    if config.losses.normal_until_after_dense is not None:
-        losses["normal_until_after_dense"] = config.losses.normal_until_after_dense
-    densify = config.densify
-    return {"polar": {"densify": {"start_iter": densify.start_iter, "end_iter": densify.end_iter,
-                                  "interval": densify.interval}, "losses": losses}}
+    config = polar_config("synthetic", factor, overrides, "--polar-set")
+    return {"polar": changed_fields(PolarConfig.synthetic().to_dict(), config.to_dict())}
 
 
 def _scene_request(name: str, request: PluginRequest):
@@ -133,9 +123,10 @@ def _scripts(request: PluginRequest) -> tuple[dict[str, Path], list[str]]:
 
     script, text = train_script(request.checkout, request.trainer)
     spec = TRAINERS[request.trainer]
-    scripts, missing = {}, []
+    missing = shrink_literals(spec, text, request.factor)[1]  # the patch leaves those statements alone
+    scripts = {}
     for variant, source in (("polargs", text), ("alone", strip_marked(text))):
-        shrunk, missing = shrink_literals(spec, source, request.factor)
+        shrunk = shrink_literals(spec, source, request.factor)[0]
         path = request.out / f"{script.stem}_{variant}.py"
         with atomic_write(path) as handle:
             handle.write(shrunk)
@@ -145,11 +136,12 @@ def _scripts(request: PluginRequest) -> tuple[dict[str, Path], list[str]]:
 
 def _saved_ply(model_path: Path) -> Path:
     """The Gaussians of the run's last save (``point_cloud/iteration_N/point_cloud.ply``, largest N)."""
-    saves = sorted(model_path.glob("point_cloud/iteration_*/point_cloud.ply"),
-                   key=lambda p: int(p.parent.name.rpartition("_")[2]) if p.parent.name.rpartition("_")[2].isdigit() else -1)
+    saves = sorted((int(p.parent.name.removeprefix("iteration_")), p)
+                   for p in model_path.glob("point_cloud/iteration_*/point_cloud.ply")
+                   if p.parent.name.removeprefix("iteration_").isdigit())
     if not saves:
         raise PolarInputError(model_path, "the trainer saved no point_cloud/iteration_N/point_cloud.ply")
-    return saves[-1]
+    return saves[-1][1]
 
 
 def evaluate_saved(ply: Path, scene: Path, cell: Path, eval_samples: int = 1_000_000) -> dict[str, Any]:
@@ -178,7 +170,7 @@ def evaluate_saved(ply: Path, scene: Path, cell: Path, eval_samples: int = 1_000
             "ply": str(ply)}
 
 
-def _run_cell(request: PluginRequest, scene: Path, variant: str, scripts: dict[str, Path], env: dict[str, str],
+def _run_cell(request: PluginRequest, scene: Path, variant: str, scripts: dict[str, Path], settings: Path,
               say: Callable[[str], None]) -> dict[str, Any]:
     from polargs_plugin.dryrun.trainers import TRAINERS, shrunk_schedule_arguments
 
@@ -195,7 +187,7 @@ def _run_cell(request: PluginRequest, scene: Path, variant: str, scripts: dict[s
     say(f"{scene.name} / {variant}: {request.trainer}'s {scripts[variant].name}, {iterations} iterations")
     start = time.perf_counter()
     report, log = launch_trainer(request.trainer, request.checkout, scripts[variant], arguments, model_path, cell,
-                                 "train", {**env, "POLARGS_DATA": str(scene)}, request.timeout)
+                                 "train", environment(scene, settings), request.timeout)
     seconds = time.perf_counter() - start
     if not report.get("finished"):
         raise PolarInputError(log, f"{scene.name} / {variant} did not finish: {report.get('error') or 'see the log'}")
@@ -214,8 +206,9 @@ def plugin_ablation(request: PluginRequest, progress: Callable[[str], None] | No
     every done cell of ``out`` and this call's failures.
 
     Raises:
-        PolarInputError: a trainer outside the graphdeco family, a factor outside (0, 1], the dry
-            run's refusals of the checkout (unpatched, missing modules, ...).
+        PolarInputError: a trainer outside the graphdeco family, a factor outside (0, 1], a bad
+            ``--polar-set`` field or value, an unknown scene, the dry run's refusals of the checkout
+            (unpatched, missing modules, ...).
     """
     from polargs_plugin.dryrun.trainers import TRAINERS
 
@@ -233,14 +226,13 @@ def plugin_ablation(request: PluginRequest, progress: Callable[[str], None] | No
     for statement in missing:
         say(f"note: {scripts['polargs'].name} holds no `{statement}`: left unscaled")
     settings = request.out / "polargs_settings.json"
-    write_json(settings, {"polar": _merged(plugin_settings(request.factor)["polar"], request.polar_overrides)})
-    env = environment(request.out, settings)
+    write_json(settings, plugin_settings(request.factor, request.polar_overrides))
     scenes = [_scene_folder(name, request) for name in request.scenes]  # a bad name fails before any training
     records = []
     for scene in scenes:
         for variant in request.variants:
             try:
-                records.append(_run_cell(request, scene, variant, scripts, env, say))
+                records.append(_run_cell(request, scene, variant, scripts, settings, say))
             except PolarInputError as err:  # the other cells go on; a later command retries this one
                 say(f"FAILED {scene.name} / {variant}: {err}")
                 records.append({"scene": scene.name, "variant": variant, "trainer": request.trainer, "error": str(err)})
