@@ -17,6 +17,8 @@ sums the rows per Gaussian. Gradients match the torch path (tests/).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Literal, NamedTuple, get_args
 
 import numba
 import numpy as np
@@ -29,11 +31,11 @@ from .binning import TileBins, tile_centres
 from .composite_torch import ALPHA_MAX, T_MIN, Composite
 from .projection import ALPHA_MIN, Projection
 
-__all__ = ["composite_numba", "ray_ordered_numba"]
+__all__ = ["composite_numba", "composite_features_numba", "FeatureComposite", "MedianRule", "ray_ordered_numba"]
 
-# Columns of the per-pair gradient rows: means2d 2, conics 3, opacity 1, colour 3, normal 3,
-# ray_coeffs 9, ray_offsets 3, depth_bounds 2, plane distance 1.
-_GRAD_COLS = 27
+# Columns of the per-pair gradient rows besides the feature columns: means2d 2, conics 3,
+# opacity 1, ray_coeffs 9, ray_offsets 3, depth_bounds 2, |dL/d mean| 2.
+_GRAD_COLS = 22
 _TILES_PER_CHUNK = 4  # tiles handed to a thread at a time: their lists differ a lot in length
 
 
@@ -48,17 +50,18 @@ def _coeffs(ray_coeffs, g):
 
 
 @numba.njit(inline="always")
-def _gaussian(g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, distances):
-    """Gaussian g's values (its ray coefficients: :func:`_coeffs`) as float64 locals, read once
-    before its pixel loop: numba cannot prove that the stores into the pixel state do not alias the
-    inputs, and would reload every input at every pixel otherwise."""
+def _gaussian(g, means2d, conics, opacities, ray_offsets, depth_bounds, features, feat):
+    """Gaussian g's values (its ray coefficients: :func:`_coeffs`) as float64 locals and its
+    feature columns copied into the tile's scratch ``feat``, read once before its pixel loop:
+    numba cannot prove that the stores into the pixel state do not alias the inputs, and would
+    reload every input at every pixel otherwise."""
+    for c in range(feat.shape[0]):
+        feat[c] = features[g, c]
     return (
         float(means2d[g, 0]), float(means2d[g, 1]),
         float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), float(opacities[g]),
-        float(colors[g, 0]), float(colors[g, 1]), float(colors[g, 2]),
-        float(normals[g, 0]), float(normals[g, 1]), float(normals[g, 2]),
         float(ray_offsets[g, 0]), float(ray_offsets[g, 1]), float(ray_offsets[g, 2]),
-        float(depth_bounds[g, 0]), float(depth_bounds[g, 1]), float(distances[g]),
+        float(depth_bounds[g, 0]), float(depth_bounds[g, 1]),
     )
 
 
@@ -135,9 +138,9 @@ def _ray(q, e0, e1, e2, b0, b1, b2, px):
 
 
 @numba.njit(inline="always")
-def _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row):
-    """Gradients of the ray coefficients Q (3x3, row-major ``q``) and offsets b into ``row[12:24]``
-    from a pair's pixel moments.
+def _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row, col):
+    """Gradients of the ray coefficients Q (3x3, row-major ``q``) into ``row[col:col + 9]`` and of
+    the offsets b into ``row[col + 9:col + 12]`` from a pair's pixel moments.
 
     Per pixel p = (px, py, 1), a = Q p and t = a.b / a.a, so with s = dL/dt / a.a:
     dL/db = sum s a = Q S and dL/dQ = sum s (b - 2 t a) p^T = b S^T - 2 Q M, where S = sum s p and
@@ -146,10 +149,10 @@ def _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1
     bs = (b0, b1, b2)
     for i in range(3):
         qx, qy, q1 = q[3 * i], q[3 * i + 1], q[3 * i + 2]
-        row[12 + 3 * i] = bs[i] * s_x - 2.0 * (qx * m_xx + qy * m_xy + q1 * m_x)
-        row[13 + 3 * i] = bs[i] * s_y - 2.0 * (qx * m_xy + qy * m_yy + q1 * m_y)
-        row[14 + 3 * i] = bs[i] * s_1 - 2.0 * (qx * m_x + qy * m_y + q1 * m_1)
-        row[21 + i] = qx * s_x + qy * s_y + q1 * s_1
+        row[col + 3 * i] = bs[i] * s_x - 2.0 * (qx * m_xx + qy * m_xy + q1 * m_x)
+        row[col + 1 + 3 * i] = bs[i] * s_y - 2.0 * (qx * m_xy + qy * m_yy + q1 * m_y)
+        row[col + 2 + 3 * i] = bs[i] * s_1 - 2.0 * (qx * m_x + qy * m_y + q1 * m_1)
+        row[col + 9 + i] = qx * s_x + qy * s_y + q1 * s_1
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -191,13 +194,25 @@ def _clip_box(boxes, g, u0, v0, tile_size, width, height):
     )
 
 
+@numba.njit(inline="always")
+def _ndc_depth(z, ndc_near, ndc_scale):
+    """The distortion's NDC-mapped depth m = scale (1 - near / max(z, near)) and dm/dz."""
+    if z >= ndc_near:
+        return ndc_scale * (1.0 - ndc_near / z), ndc_scale * ndc_near / (z * z)
+    return 0.0, 0.0
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _forward_kernel(
-    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances, boxes,
-    gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
-    out_color, out_depth, out_normal, out_alpha, out_distance, trans_final, median, last_slot, median_slot,
+    means2d, conics, opacities, features, ray_coeffs, ray_offsets, depth_bounds, boxes,
+    gauss_ids, tile_offsets, tiles_x, tile_size, width, height, median_above, ndc_near, ndc_far, columns,
+    out_features, out_depth, out_alpha, out_distortion, trans_final, median, moments, last_slot, median_slot,
+    observe_slot,
 ):
     num_tiles = tile_offsets.shape[0] - 1
+    nf = len(columns)  # a compile-time constant (the tuple's length is its type): the feature loops unroll
+    with_distortion = ndc_far > ndc_near
+    ndc_scale = ndc_far / (ndc_far - ndc_near) if with_distortion else 0.0
     for tile in numba.prange(num_tiles):
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         u0 = (tile % tiles_x) * tile_size
@@ -207,7 +222,8 @@ def _forward_kernel(
         # Per-pixel state of the tile, pixel p = (v - v0) * tile_size + (u - u0).
         npix = tile_size * tile_size
         trans = np.ones(npix)
-        acc = np.zeros((npix, 8))  # colour 3, depth sum, normal 3, plane distance
+        acc = np.zeros((npix, nf + 1))  # feature columns, depth sum
+        dist = np.zeros((npix, 3))  # distortion, sum w m, sum w m^2 (m: NDC-mapped depth)
         med_z = np.zeros(npix)
         med_j = np.full(npix, -1, np.int64)
         last = np.full(npix, start, np.int64)
@@ -215,6 +231,7 @@ def _forward_kernel(
         row_active = np.full(tile_size, tw, np.int64)  # pixels of each row still compositing
         active = tw * th
         row_falloff = np.empty(tile_size)  # exp(-sigma) along a row (_row_falloffs)
+        feat = np.empty(nf)  # the current Gaussian's feature columns
         for j in range(start, end):
             if active == 0:
                 break
@@ -222,9 +239,10 @@ def _forward_kernel(
             ulo, uhi, vlo, vhi = _clip_box(boxes, g, u0, v0, tile_size, width, height)
             if ulo > uhi or vlo > vhi:
                 continue
-            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi, dist) = _gaussian(
-                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, distances)
+            (mx, my, c0, c1, c2, opacity, b0, b1, b2, lo, hi) = _gaussian(
+                g, means2d, conics, opacities, ray_offsets, depth_bounds, features, feat)
             q = _coeffs(ray_coeffs, g)
+            observed = 0
             for v in range(vlo, vhi + 1):
                 if row_active[v - v0] == 0:
                     continue
@@ -250,31 +268,37 @@ def _forward_kernel(
                     t = _ray(q, e0, e1, e2, b0, b1, b2, px)[0]
                     z = min(max(t, lo), hi)
                     w = alpha * tp
-                    acc[p, 0] += w * col0
-                    acc[p, 1] += w * col1
-                    acc[p, 2] += w * col2
-                    acc[p, 3] += w * z
-                    acc[p, 4] += w * n0
-                    acc[p, 5] += w * n1
-                    acc[p, 6] += w * n2
-                    acc[p, 7] += w * dist
-                    if tp >= 0.5 and next_t < 0.5:
+                    for c in range(nf):
+                        acc[p, c] += w * feat[c]
+                    acc[p, nf] += w * z
+                    if with_distortion:
+                        # 2DGS's per-pair form w (m^2 A + M2 - 2 m M1), A = 1 - T the earlier weights
+                        m = _ndc_depth(z, ndc_near, ndc_scale)[0]
+                        m1, m2 = dist[p, 1], dist[p, 2]
+                        dist[p, 0] += (m * m * (1.0 - tp) + m2 - 2.0 * m * m1) * w
+                        dist[p, 1] = m1 + w * m
+                        dist[p, 2] = m2 + w * m * m
+                    if tp > 0.5:
+                        observed += 1
+                        if median_above:
+                            med_z[p] = z
+                            med_j[p] = j
+                    if not median_above and tp >= 0.5 and next_t < 0.5:
                         med_z[p] = z
                         med_j[p] = j
                     trans[p] = next_t
                     last[p] = j + 1
+            observe_slot[j] = observed
         for v in range(v0, v0 + th):
             for u in range(u0, u0 + tw):
                 p = (v - v0) * tile_size + (u - u0)
-                out_color[0, v, u] = acc[p, 0]
-                out_color[1, v, u] = acc[p, 1]
-                out_color[2, v, u] = acc[p, 2]
-                out_depth[0, v, u] = acc[p, 3]
-                out_normal[0, v, u] = acc[p, 4]
-                out_normal[1, v, u] = acc[p, 5]
-                out_normal[2, v, u] = acc[p, 6]
-                out_distance[0, v, u] = acc[p, 7]
+                for c in range(nf):
+                    out_features[c, v, u] = acc[p, c]
+                out_depth[0, v, u] = acc[p, nf]
                 out_alpha[0, v, u] = 1.0 - trans[p]
+                out_distortion[0, v, u] = dist[p, 0]
+                moments[0, v, u] = dist[p, 1]
+                moments[1, v, u] = dist[p, 2]
                 trans_final[v, u] = trans[p]
                 median[v, u] = med_z[p]
                 last_slot[v, u] = last[p]
@@ -283,12 +307,17 @@ def _forward_kernel(
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _backward_kernel(
-    means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances, boxes,
-    gauss_ids, tile_offsets, tiles_x, tile_size, width, height,
-    trans_final, last_slot, median_slot, grad_color, grad_depth, grad_normal, grad_alpha, grad_median,
-    grad_distance, pair_grads,
+    means2d, conics, opacities, features, ray_coeffs, ray_offsets, depth_bounds, boxes,
+    gauss_ids, tile_offsets, tiles_x, tile_size, width, height, median_above, ndc_near, ndc_far, columns,
+    trans_final, moments, last_slot, median_slot, grad_features, grad_depth, grad_alpha, grad_median,
+    grad_distortion, with_abs, pair_grads,
 ):
     num_tiles = tile_offsets.shape[0] - 1
+    nf = len(columns)  # a compile-time constant (the tuple's length is its type): the feature loops unroll
+    with_distortion = ndc_far > ndc_near
+    ndc_scale = ndc_far / (ndc_far - ndc_near) if with_distortion else 0.0
+    col_q = 6 + nf  # pair_grads columns: means2d 2, conics 3, opacity, features, Q 9, b 3, bounds 2, |mean| 2
+    col_bounds = col_q + 12
     for tile in numba.prange(num_tiles):
         start = tile_offsets[tile]
         u0 = (tile % tiles_x) * tile_size
@@ -298,21 +327,28 @@ def _backward_kernel(
         npix = tile_size * tile_size
         trans = np.ones(npix)
         rest = np.zeros(npix)
-        grads = np.zeros((npix, 9), grad_color.dtype)  # colour 3, depth, normal 3, median, distance (input dtype)
+        # features, depth, median, distortion (input dtype)
+        grads = np.zeros((npix, nf + 3), grad_features.dtype)
+        totals = np.zeros((npix, 3))  # the distortion's A = sum w, M1 = sum w m, M2 = sum w m^2
         last = np.full(npix, start, np.int64)
         med_j = np.full(npix, -1, np.int64)
         row_end = np.full(tile_size, start, np.int64)  # one past the last slot any pixel of the row uses
         end = start
         row_falloff = np.empty(tile_size)  # the forward's exp(-sigma) along a row
+        feat = np.empty(nf)  # the current Gaussian's feature columns
+        d_feat = np.empty(nf)  # and their gradient, summed over the pair's pixels
         for v in range(v0, v0 + th):
             for u in range(u0, u0 + tw):
                 p = (v - v0) * tile_size + (u - u0)
-                for c in range(3):
-                    grads[p, c] = grad_color[c, v, u]
-                    grads[p, 4 + c] = grad_normal[c, v, u]
-                grads[p, 3] = grad_depth[0, v, u]
-                grads[p, 7] = grad_median[0, v, u]
-                grads[p, 8] = grad_distance[0, v, u]
+                for c in range(nf):
+                    grads[p, c] = grad_features[c, v, u]
+                grads[p, nf] = grad_depth[0, v, u]
+                grads[p, nf + 1] = grad_median[0, v, u]
+                if with_distortion:
+                    grads[p, nf + 2] = grad_distortion[0, v, u]
+                    totals[p, 0] = 1.0 - trans_final[v, u]
+                    totals[p, 1] = moments[0, v, u]
+                    totals[p, 2] = moments[1, v, u]
                 trans[p] = trans_final[v, u]
                 # alpha_out = 1 - T_final, so the pixel's "rest" term starts at -g_alpha * T_final.
                 rest[p] = -grad_alpha[0, v, u] * trans_final[v, u]
@@ -327,13 +363,14 @@ def _backward_kernel(
             if ulo > uhi or vlo > vhi:
                 pair_grads[j, :] = 0.0
                 continue
-            (mx, my, c0, c1, c2, opacity, col0, col1, col2, n0, n1, n2, b0, b1, b2, lo, hi, dist) = _gaussian(
-                g, means2d, conics, opacities, colors, normals, ray_offsets, depth_bounds, distances)
+            (mx, my, c0, c1, c2, opacity, b0, b1, b2, lo, hi) = _gaussian(
+                g, means2d, conics, opacities, ray_offsets, depth_bounds, features, feat)
             q = _coeffs(ray_coeffs, g)
             # This pair's gradient, summed in float64 locals (registers, not memory) over the
             # pixels in row-major order and written once (each pair belongs to one tile).
             d_mx = d_my = d_c0 = d_c1 = d_c2 = d_op = 0.0
-            d_col0 = d_col1 = d_col2 = d_n0 = d_n1 = d_n2 = d_dist = 0.0
+            d_feat[:] = 0.0
+            abs_x = abs_y = 0.0  # sums over the pixels of |dL/d mean| (AbsGS)
             # Depth terms as moments over the pixels (see _ray_gradients): S = sum s p, M = sum s t p p^T.
             s_x = s_y = s_1 = m_xx = m_xy = m_x = m_yy = m_y = m_1 = 0.0
             d_lo = d_hi = 0.0
@@ -363,33 +400,38 @@ def _backward_kernel(
                     keep = 1.0 / (1.0 - alpha)
                     tp = trans[p] * keep
                     trans[p] = tp
-                    gc0, gc1, gc2, gd = grads[p, 0], grads[p, 1], grads[p, 2], grads[p, 3]
-                    gn0, gn1, gn2, gdist = grads[p, 4], grads[p, 5], grads[p, 6], grads[p, 8]
-                    fg = col0 * gc0 + col1 * gc1 + col2 * gc2 + n0 * gn0 + n1 * gn1 + n2 * gn2 + dist * gdist
-                    # The depth terms only where the pixel's depth or median depth has a gradient
-                    # (never in a colour-only loss): skipping them adds nothing but zeros.
+                    gd, g_dist = grads[p, nf], grads[p, nf + 2]
+                    fg = 0.0  # dL/d(this pair's weight)
+                    for c in range(nf):
+                        fg += feat[c] * grads[p, c]
+                    # The depth terms only where the pixel's depth, median depth or distortion has
+                    # a gradient (never in a colour-only loss): skipping them adds nothing but zeros.
                     median_here = j == med_j[p]
-                    geometric = gd != 0.0 or median_here
+                    geometric = gd != 0.0 or median_here or g_dist != 0.0
+                    dz_dw = 0.0  # dL/dz per unit weight
                     if geometric:
                         t, inv_aa = _ray(q, e0, e1, e2, b0, b1, b2, px)
                         z = min(max(t, lo), hi)
                         fg += z * gd
+                        dz_dw = gd
+                        if g_dist != 0.0:
+                            # D = A M2 - M1^2 over the pixel's totals: dD/dw = M2 + A m^2 - 2 M1 m
+                            # and dD/dm = 2 w (A m - M1).
+                            m, dm_dz = _ndc_depth(z, ndc_near, ndc_scale)
+                            a_tot, m1, m2 = totals[p, 0], totals[p, 1], totals[p, 2]
+                            fg += g_dist * (m2 + a_tot * m * m - 2.0 * m1 * m)
+                            dz_dw += g_dist * 2.0 * (a_tot * m - m1) * dm_dz
                     w = alpha * tp
                     rp = rest[p]
                     d_alpha = tp * fg - rp * keep
                     rest[p] = rp + w * fg
 
-                    d_col0 += w * gc0
-                    d_col1 += w * gc1
-                    d_col2 += w * gc2
-                    d_n0 += w * gn0
-                    d_n1 += w * gn1
-                    d_n2 += w * gn2
-                    d_dist += w * gdist
+                    for c in range(nf):
+                        d_feat[c] += w * grads[p, c]
                     if geometric:
-                        dz = w * gd
+                        dz = w * dz_dw
                         if median_here:
-                            dz += grads[p, 7]
+                            dz += grads[p, nf + 1]
                         if t < lo:
                             d_lo += dz
                         elif t > hi:
@@ -410,6 +452,9 @@ def _backward_kernel(
                         dsx = d_sigma * dx
                         r_dsx += dsx
                         r_dsxx += dsx * dx
+                        if with_abs:
+                            abs_x += abs(d_sigma * (c0 * dx + c1 * dy))
+                            abs_y += abs(d_sigma * (c1 * dx + c2 * dy))
                 # sigma = c0 dx^2 / 2 + c1 dx dy + c2 dy^2 / 2; d sigma / d mean = -C d
                 d_c0 += 0.5 * r_dsxx
                 d_c1 += dy * r_dsx
@@ -428,9 +473,11 @@ def _backward_kernel(
                 m_1 += r_st
             row = pair_grads[j]
             row[0], row[1], row[2], row[3], row[4], row[5] = d_mx, d_my, d_c0, d_c1, d_c2, d_op
-            row[6], row[7], row[8], row[9], row[10], row[11] = d_col0, d_col1, d_col2, d_n0, d_n1, d_n2
-            _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row)
-            row[24], row[25], row[26] = d_lo, d_hi, d_dist
+            for c in range(nf):
+                row[6 + c] = d_feat[c]
+            _ray_gradients(q, b0, b1, b2, s_x, s_y, s_1, m_xx, m_xy, m_x, m_yy, m_y, m_1, row, col_q)
+            row[col_bounds], row[col_bounds + 1] = d_lo, d_hi
+            row[col_bounds + 2], row[col_bounds + 3] = abs_x, abs_y
 
 
 @numba.njit(cache=True)
@@ -447,57 +494,153 @@ def _np(x: Tensor) -> np.ndarray:
     return x.detach().contiguous().numpy()
 
 
+class _Rules(NamedTuple):
+    """What :class:`_CompositeFunction` composites besides the feature columns."""
+
+    median_above: bool  # median depth: the last Gaussian blended while T > 0.5 (else the one crossing 0.5)
+    ndc_near: float  # the distortion's NDC depth mapping (no distortion when ndc_far <= ndc_near)
+    ndc_far: float
+    abs_factors: tuple[float, float]  # units of the absolute mean gradient (per pixel of x, y)
+
+
 class _CompositeFunction(torch.autograd.Function):
-    """Inputs: means2d, conics, opacities, colours, normals, ray coefficients (N, 9),
-    ray offsets, depth bounds, plane distances (N,), then the non-differentiable bins, width, height.
-    Outputs: the sums colour (3, H, W), depth (1, H, W), normal (3, H, W), alpha (1, H, W), the
-    median depth (1, H, W) and the plane distance sum (1, H, W), each its own tensor (no
-    slicing, so no slice backward)."""
+    """Inputs: means2d, conics, opacities, the feature columns (N, F), ray coefficients (N, 9),
+    ray offsets, depth bounds, the absolute-gradient target (None, (N, 1) or (N, 2)), then the
+    non-differentiable bins, width, height, the column counts of the feature groups and the
+    :class:`_Rules`. Outputs: one (F_k, H, W) sum per feature group, depth (1, H, W), alpha
+    (1, H, W), median depth (1, H, W), distortion (1, H, W) and the observe counts (N,), each
+    its own tensor (no slicing, so no slice backward)."""
 
     @staticmethod
     def forward(
-        ctx, means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances, bins,
-        width, height,
+        ctx, means2d, conics, opacities, features, ray_coeffs, ray_offsets, depth_bounds, abs_target, bins,
+        width, height, groups, rules,
     ):
         dtype = means2d.dtype
-        inputs = (means2d, conics, opacities, colors, normals, ray_coeffs, ray_offsets, depth_bounds, distances)
+        inputs = (means2d, conics, opacities, features, ray_coeffs, ray_offsets, depth_bounds)
         arrays = [_np(x.to(dtype)) for x in inputs]
         grid = (_np(bins.gauss_ids), _np(bins.tile_offsets), bins.tiles_x, bins.tile_size, width, height)
+        options = (rules.median_above, rules.ndc_near, rules.ndc_far, (0,) * features.shape[1])
         np_dtype = arrays[0].dtype
         # Every pixel belongs to one tile, so the kernel writes every entry of these.
-        outs = tuple(np.empty((c, height, width), np_dtype) for c in (3, 1, 3, 1, 1, 1))  # colour .. distance
+        image = np.empty((features.shape[1], height, width), np_dtype)
+        outs = tuple(np.empty((1, height, width), np_dtype) for _ in range(4))  # depth, alpha, median, distortion
         state = (
             np.empty((height, width), np_dtype),  # final transmittance
+            np.empty((2, height, width), np.float64),  # the distortion's sums of w m and w m^2
             np.empty((height, width), np.int64),  # one past the last contributing list slot
             np.empty((height, width), np.int64),  # list slot of the median Gaussian (-1: none)
         )
+        observe_slot = np.zeros(bins.gauss_ids.shape[0], np.int64)
         num = arrays[0].shape[0]
         boxes = np.empty((num, 4), np.int64)
         with numba_scheduling(chunksize=_TILES_PER_CHUNK):
             _footprint_kernel(arrays[0], arrays[1], arrays[2], width, height, boxes)
             arrays = (*arrays, boxes)
-            _forward_kernel(*arrays, *grid, *outs[:4], outs[5], state[0], outs[4][0], state[1], state[2])
-        ctx.arrays, ctx.grid, ctx.state = arrays, grid, state
-        ctx.dtype = dtype
-        return tuple(torch.from_numpy(o) for o in outs)
+            _forward_kernel(*arrays, *grid, *options, image, outs[0], outs[1], outs[3], state[0], outs[2][0],
+                            *state[1:], observe_slot)
+        observe = np.bincount(grid[0], weights=observe_slot, minlength=num)  # exact: integer counts
+        ctx.arrays, ctx.grid, ctx.options, ctx.state = arrays, grid, options, state
+        ctx.dtype, ctx.groups, ctx.rules = dtype, groups, rules
+        ctx.abs_shape = None if abs_target is None else abs_target.shape
+        observe_t = torch.from_numpy(observe.astype(np.int32))
+        ctx.mark_non_differentiable(observe_t)
+        bounds = np.cumsum((0, *groups))
+        images = tuple(torch.from_numpy(image[a:b]) for a, b in zip(bounds[:-1], bounds[1:]))
+        return (*images, *(torch.from_numpy(o) for o in outs), observe_t)
 
     @staticmethod
-    def backward(ctx, grad_color, grad_depth, grad_normal, grad_alpha, grad_median, grad_distance):
-        dtype = ctx.dtype
+    def backward(ctx, *output_grads):
+        dtype, nf = ctx.dtype, sum(ctx.groups)
         gauss_ids = ctx.grid[0]
-        pair_grads = np.empty((gauss_ids.shape[0], _GRAD_COLS), np.float64)
-        output_grads = (_np(g.to(dtype)) for g in
-                        (grad_color, grad_depth, grad_normal, grad_alpha, grad_median, grad_distance))
+        image_grads, rest_grads = output_grads[: len(ctx.groups)], output_grads[len(ctx.groups) : -1]
+        grad_features = _np(torch.cat(image_grads).to(dtype))
+        grad_depth, grad_alpha, grad_median, grad_distortion = (_np(g.to(dtype)) for g in rest_grads)
+        with_abs = ctx.abs_shape is not None and ctx.needs_input_grad[7]
+        pair_grads = np.empty((gauss_ids.shape[0], nf + _GRAD_COLS), np.float64)
         with numba_scheduling(chunksize=_TILES_PER_CHUNK):
-            _backward_kernel(*ctx.arrays, *ctx.grid, *ctx.state, *output_grads, pair_grads)
-        grads = np.zeros((ctx.arrays[0].shape[0], _GRAD_COLS), np.float64)
+            _backward_kernel(*ctx.arrays, *ctx.grid, *ctx.options, *ctx.state, grad_features,
+                             grad_depth, grad_alpha, grad_median, grad_distortion, with_abs, pair_grads)
+        grads = np.zeros((ctx.arrays[0].shape[0], pair_grads.shape[1]), np.float64)
         _sum_pairs(gauss_ids, pair_grads, grads)
         grads = torch.from_numpy(grads).to(dtype)
-        d_means2d, d_conics, d_opac, d_colors, d_normals, d_q, d_b, d_bounds, d_dist = torch.split(
-            grads, [2, 3, 1, 3, 3, 9, 3, 2, 1], dim=1
+        d_means2d, d_conics, d_opac, d_features, d_q, d_b, d_bounds, d_abs = torch.split(
+            grads, [2, 3, 1, nf, 9, 3, 2, 2], dim=1
         )
-        return (d_means2d, d_conics, d_opac[:, 0], d_colors, d_normals, d_q, d_b, d_bounds, d_dist[:, 0],
-                None, None, None)
+        if with_abs:
+            d_abs = d_abs * d_abs.new_tensor(ctx.rules.abs_factors)
+            d_abs = d_abs.sum(dim=1, keepdim=True) if ctx.abs_shape[1] == 1 else d_abs
+        return (d_means2d, d_conics, d_opac[:, 0], d_features, d_q, d_b, d_bounds, d_abs if with_abs else None,
+                None, None, None, None, None)
+
+
+MedianRule = Literal["crossing", "last_above"]
+
+
+class FeatureComposite(NamedTuple):
+    """What :func:`composite_features_numba` composites for one image (channel-first).
+
+    Attributes:
+        features: one (C_k, H, W) sum of weight * column per feature group, in the given order.
+        depth: (1, H, W) sum of weight * per-pixel depth (not normalised).
+        alpha: (1, H, W) sum of weights = 1 - final transmittance.
+        median_depth: (1, H, W) per-pixel depth of the median Gaussian (``median``), else 0.
+        distortion: (1, H, W) depth distortion sum_ij w_i w_j (m_i - m_j)^2 / 2 over NDC-mapped
+            depths m (0 without ``distortion_planes``).
+        observe: (N,) int32, pixels where each Gaussian was blended while T > 0.5.
+    """
+
+    features: tuple[Tensor, ...]
+    depth: Tensor
+    alpha: Tensor
+    median_depth: Tensor
+    distortion: Tensor
+    observe: Tensor
+
+
+def composite_features_numba(
+    proj: Projection, opacities: Tensor, features: Sequence[Tensor], bins: TileBins, width: int, height: int, *,
+    median: MedianRule = "crossing", distortion_planes: tuple[float, float] | None = None,
+    screen_abs: Tensor | None = None, abs_factors: tuple[float, float] = (1.0, 1.0),
+) -> FeatureComposite:
+    """Composite any number of per-Gaussian feature columns with the compiled kernel (the rule of
+    :mod:`.composite_torch`), with the depth, alpha and median depth, and optionally the depth
+    distortion and the absolute screen-space gradient; differentiable (hand-written backward).
+
+    Args:
+        proj: :class:`Projection` of the N Gaussians (CPU tensors).
+        opacities: (N,) opacities.
+        features: groups of (N, C_k) columns, composited with the colour weights; each group
+            comes back as its own image.
+        bins: :class:`TileBins` from the same projection.
+        width, height: image size.
+        median: "crossing": the depth of the Gaussian at which T first drops below 0.5 (the
+            reference rasterizer's rule); "last_above": of the last Gaussian blended while T > 0.5
+            (the upstream CUDA rasterizers').
+        distortion_planes: (near, far) of the NDC depth mapping m = far / (far - near)
+            (1 - near / max(z, near)) of 2DGS's distortion; None: no distortion (zeros).
+        screen_abs: (N, 1) or (N, 2) zero tensor whose ``.grad`` receives, per Gaussian, the sum
+            over its pixels of |dL/d mean2d| (|x| + |y|, or per axis), times ``abs_factors``.
+        abs_factors: (x, y) factors of that absolute gradient (e.g. the NDC factors W/2, H/2).
+    """
+    if proj.means2d.device.type != "cpu":
+        raise ValueError(f"composite_numba runs on CPU tensors only, got {proj.means2d.device}")
+    if median not in get_args(MedianRule):
+        raise ValueError(f"median must be one of {get_args(MedianRule)}, got {median!r}")
+    if screen_abs is not None and (screen_abs.dim() != 2 or screen_abs.shape[1] not in (1, 2)):
+        raise ValueError(f"screen_abs must be (N, 1) or (N, 2), got {tuple(screen_abs.shape)}")
+    near, far = (0.0, 0.0) if distortion_planes is None else (float(distortion_planes[0]), float(distortion_planes[1]))
+    if distortion_planes is not None and not 0.0 < near < far:
+        raise ValueError(f"distortion_planes must be 0 < near < far, got {distortion_planes}")
+    groups = tuple(int(f.shape[1]) for f in features)
+    dtype = proj.means2d.dtype
+    columns = torch.cat([f.to(dtype) for f in features], dim=1)
+    rules = _Rules(median == "last_above", near, far, (float(abs_factors[0]), float(abs_factors[1])))
+    *images, depth, alpha, median_depth, distortion, observe = _CompositeFunction.apply(
+        proj.means2d, proj.conics, opacities, columns, proj.ray_coeffs.reshape(-1, 9), proj.ray_offsets,
+        proj.depth_bounds, screen_abs, bins, width, height, groups, rules,
+    )
+    return FeatureComposite(tuple(images), depth, alpha, median_depth, distortion, observe)
 
 
 def composite_numba(
@@ -517,15 +660,10 @@ def composite_numba(
     Returns:
         :class:`Composite`, differentiable through a custom autograd function.
     """
-    if proj.means2d.device.type != "cpu":
-        raise ValueError(f"composite_numba runs on CPU tensors only, got {proj.means2d.device}")
-    plane = proj.depths.new_zeros(proj.depths.shape) if distances is None else distances
-    color, depth, normal, alpha, median, distance = _CompositeFunction.apply(
-        proj.means2d, proj.conics, opacities, colors, proj.normals,
-        proj.ray_coeffs.reshape(-1, 9), proj.ray_offsets, proj.depth_bounds, plane, bins, width, height,
-    )
-    return Composite(color=color, depth=depth, normal=normal, alpha=alpha, median_depth=median,
-                     distance=None if distances is None else distance)
+    features = [colors, proj.normals] + ([] if distances is None else [distances[:, None]])
+    out = composite_features_numba(proj, opacities, features, bins, width, height)
+    return Composite(color=out.features[0], depth=out.depth, normal=out.features[1], alpha=out.alpha,
+                     median_depth=out.median_depth, distance=None if distances is None else out.features[2])
 
 
 def ray_ordered_numba(bins: TileBins, keys: tuple[Tensor, Tensor, Tensor]) -> TileBins:
