@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from polargs_plugin.backends.reference.binning import bin_gaussians
+from polargs_plugin.backends.reference.binning import TileBins, bin_gaussians
 from polargs_plugin.backends.reference.composite_torch import (
     contributing_pairs,
     exclusive_transmittance,
@@ -33,6 +33,7 @@ from polargs_plugin.backends.reference.composite_torch import (
     pixel_depth,
 )
 from polargs_plugin.backends.reference.projection import Projection, project_gaussians
+from polargs_plugin.backends.reference.rasterizer import Backend, resolve_backend
 
 __all__ = ["NEAR_PLANE", "FAR_PLANE", "SplatOut", "Projected", "project_splats", "composite_splats", "splat", "camera_from_upstream", "compensation", "upstream_radii"]
 
@@ -225,12 +226,52 @@ def composite_splats(
     screen_abs: Tensor | None = None,
     normalize_distortion: bool = False,
     tile_size: int = 16,
+    backend: Backend = "auto",
 ) -> SplatOut:
-    """The compositing half of :func:`splat`: ``features`` (N, C) and the extras, front to back."""
+    """The compositing half of :func:`splat`: ``features`` (N, C) and the extras, front to back,
+    on the compositing path ``backend`` selects (:func:`~polargs_plugin.backends.reference.rasterizer.resolve_backend`:
+    "auto" is the compiled kernel on CPU)."""
+    proj, opac = projected.proj, projected.opacities
+    if features.dim() != 2 or features.shape[0] != proj.means2d.shape[0]:
+        raise ValueError(f"features must be (N, C) with N={proj.means2d.shape[0]}, got {tuple(features.shape)}")
+    path = resolve_backend(backend, proj.means2d.device)
+    bins = bin_gaussians(proj.means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
+    if path == "numba":
+        sums = _composite_numba(projected, features, bins, width, height, screen_abs)
+    else:
+        sums = _composite_torch(projected, features, bins, width, height, screen_abs)
+    image, alpha, normal, depth, inverse_depth, median_depth, distortion, observe = sums
+    if normalize_distortion:
+        distortion = distortion / (alpha * alpha + 1e-7)
+    return SplatOut(
+        features=image, alpha=alpha, normal=normal, depth=depth, inverse_depth=inverse_depth,
+        median_depth=median_depth, distortion=distortion, observe=observe,
+        radii=upstream_radii(proj, projected.in_range, width, height),
+    )
+
+
+def _composite_numba(projected: Projected, features: Tensor, bins: TileBins, width: int, height: int,
+                     screen_abs: Tensor | None) -> tuple[Tensor, ...]:
+    """The sums of :class:`SplatOut` (before the distortion's normalisation) from the compiled kernel."""
+    from polargs_plugin.backends.reference.composite_numba import composite_features_numba
+
+    proj = projected.proj
+    out = composite_features_numba(
+        proj, projected.opacities, [features, proj.normals, 1.0 / proj.depths[:, None]], bins, width, height,
+        median="last_above", distortion_planes=(NEAR_PLANE, FAR_PLANE), screen_abs=screen_abs,
+        abs_factors=(width / 2.0, height / 2.0),
+    )
+    image, normal, inverse_depth = out.features
+    return image, out.alpha, normal, out.depth, inverse_depth, out.median_depth, out.distortion, out.observe
+
+
+def _composite_torch(projected: Projected, features: Tensor, bins: TileBins, width: int, height: int,
+                     screen_abs: Tensor | None) -> tuple[Tensor, ...]:
+    """The sums of :class:`SplatOut` (before the distortion's normalisation) from the torch path:
+    the contributing (pixel, Gaussian) pairs, index-added into the pixels."""
     proj, opac, factors = projected.proj, projected.opacities, projected.factors
     means2d = proj.means2d
     num_gaussians, dtype, device = means2d.shape[0], means2d.dtype, means2d.device
-    bins = bin_gaussians(means2d.detach(), proj.extents, proj.depths.detach(), width, height, tile_size)
     pix, g = contributing_pairs(proj, opac.detach(), bins, width, height)
 
     num_pix = width * height
@@ -249,23 +290,12 @@ def composite_splats(
     sums = torch.zeros(num_pix, values.shape[1], dtype=dtype, device=device).index_add(0, pix, weight[:, None] * values)
     image = sums.T.reshape(values.shape[1], height, width)
     c = features.shape[1]
-    alpha_image = image[c : c + 1]
     distortion = _distortion(depth, weight, trans, pix, num_pix).reshape(1, height, width)
-    if normalize_distortion:
-        distortion = distortion / (alpha_image * alpha_image + 1e-7)
     with torch.no_grad():
         observe = torch.bincount(g[trans > 0.5], minlength=num_gaussians).to(torch.int32)
-    return SplatOut(
-        features=image[:c],
-        alpha=alpha_image,
-        normal=image[c + 1 : c + 4],
-        depth=image[c + 4 : c + 5],
-        inverse_depth=image[c + 5 : c + 6],
-        median_depth=_median_depth(depth, trans, pix, num_pix).reshape(1, height, width),
-        distortion=distortion,
-        observe=observe,
-        radii=upstream_radii(proj, projected.in_range, width, height),
-    )
+    median_depth = _median_depth(depth, trans, pix, num_pix).reshape(1, height, width)
+    return (image[:c], image[c : c + 1], image[c + 1 : c + 4], image[c + 4 : c + 5], image[c + 5 : c + 6],
+            median_depth, distortion, observe)
 
 
 def splat(
@@ -285,6 +315,7 @@ def splat(
     compensate: bool = False,
     normalize_distortion: bool = False,
     tile_size: int = 16,
+    backend: Backend = "auto",
 ) -> SplatOut:
     """Composite N Gaussians into one image with the upstream extras (module docstring):
     :func:`project_splats`, then :func:`composite_splats`.
@@ -306,8 +337,11 @@ def splat(
         compensate: scale opacities by the Mip-Splatting factor of that dilation.
         normalize_distortion: divide the distortion by alpha^2 + 1e-7 (GOF).
         tile_size: binning tile edge.
+        backend: the compositing path: "numba" (compiled CPU kernel, hand-written backward),
+            "torch" (the contributing pairs in torch, any device) or "auto" (numba on CPU when
+            it imports, else torch); same rule and outputs to float rounding.
     """
     projected = project_splats(means, quats, scales, opacities, K, world_to_camera, width, height, screen=screen,
                                eps2d=eps2d, compensate=compensate)
     return composite_splats(projected, features, width, height, screen_abs=screen_abs,
-                            normalize_distortion=normalize_distortion, tile_size=tile_size)
+                            normalize_distortion=normalize_distortion, tile_size=tile_size, backend=backend)
