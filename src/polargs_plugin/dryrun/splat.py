@@ -203,11 +203,22 @@ def project_splats(
     compensate: bool = False,
     near: float = NEAR_PLANE,
     far: float = 1e10,
+    backend: Backend = "auto",
 ) -> Projected:
-    """The projection half of :func:`splat` (its arguments; ``near`` / ``far`` the culling planes)."""
+    """The projection half of :func:`splat` (its arguments; ``near`` / ``far`` the culling planes).
+    On the numba path the projection is the compiled kernel of
+    :func:`~polargs_plugin.backends.reference.projection_numba.project_numba` (same outputs to
+    float rounding), unless K or ``world_to_camera`` require a gradient, which only the torch
+    projection gives."""
     w2c = world_to_camera.to(means)
     K = K.to(means)
-    proj = project_gaussians(means, quats, scales, opacities, K, w2c, width, height, near, far, eps2d)
+    compiled = resolve_backend(backend, means.device) == "numba" and not (K.requires_grad or w2c.requires_grad)
+    if compiled:
+        from polargs_plugin.backends.reference.projection_numba import project_numba
+
+        proj = project_numba(means, quats, scales, opacities, None, K, w2c, width, height, near, far, eps2d)[0]
+    else:
+        proj = project_gaussians(means, quats, scales, opacities, K, w2c, width, height, near, far, eps2d)
     z = means @ w2c[2, :3] + w2c[2, 3]
     in_range = (z >= near) & (z < far)
     factors = torch.tensor([width / 2.0, height / 2.0], dtype=means.dtype, device=means.device)
@@ -337,11 +348,11 @@ def splat(
         compensate: scale opacities by the Mip-Splatting factor of that dilation.
         normalize_distortion: divide the distortion by alpha^2 + 1e-7 (GOF).
         tile_size: binning tile edge.
-        backend: the compositing path: "numba" (compiled CPU kernel, hand-written backward),
-            "torch" (the contributing pairs in torch, any device) or "auto" (numba on CPU when
-            it imports, else torch); same rule and outputs to float rounding.
+        backend: "numba" (the compiled CPU projection and compositing, hand-written backward),
+            "torch" (torch projection, the contributing pairs in torch, any device) or "auto"
+            (numba on CPU when it imports, else torch); same rule and outputs to float rounding.
     """
     projected = project_splats(means, quats, scales, opacities, K, world_to_camera, width, height, screen=screen,
-                               eps2d=eps2d, compensate=compensate)
+                               eps2d=eps2d, compensate=compensate, backend=backend)
     return composite_splats(projected, features, width, height, screen_abs=screen_abs,
                             normalize_distortion=normalize_distortion, tile_size=tile_size, backend=backend)

@@ -511,7 +511,7 @@ def project_numba(
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    colors: Tensor,
+    colors: Tensor | None,
     K: Tensor,
     world_to_camera: Tensor,
     width: int,
@@ -519,7 +519,7 @@ def project_numba(
     near: float = 0.01,
     far: float = 100.0,
     eps2d: float = DEFAULT_EPS2D,
-) -> tuple[Projection, Tensor]:
+) -> tuple[Projection, Tensor | None]:
     """:func:`~.projection.project_gaussians` plus the per-view colour, in one compiled kernel.
 
     Args:
@@ -527,24 +527,29 @@ def project_numba(
             for :func:`~.projection.project_gaussians` (CPU tensors; K and world_to_camera get no
             gradient).
         colors: (N, 3) RGB, passed through, or (N, K, 3) SH coefficients evaluated as
-            :func:`~polargs_plugin.geometry.eval_sh` does at the direction camera centre -> mean.
+            :func:`~polargs_plugin.geometry.eval_sh` does at the direction camera centre -> mean,
+            or None (the projection alone: a caller with colours of its own).
 
     Returns:
-        (projection, colours (N, 3)), both differentiable through one custom autograd function.
+        (projection, colours (N, 3) or None), both differentiable through one custom autograd function.
     """
     if means.device.type != "cpu":
         raise ValueError(f"project_numba runs on CPU tensors only, got {means.device}")
     dtype = means.dtype
-    if colors.dim() == 3:
+    given = colors is not None
+    if colors is None:
+        degree = -1
+        sh = means.new_zeros(means.shape[0], 1, 3)  # passed through and dropped
+    elif colors.dim() == 3:
         degree = sh_degree_from_coeffs(colors.shape[-2])
         sh = colors.to(dtype)
     else:
         degree = -1
         sh = colors.to(dtype)[:, None, :]
     camera = _camera_arrays(K, world_to_camera, dtype)
-    means2d, conics, depths, colors, normals, ray_coeffs, ray_offsets, bounds, extents = _ProjectFunction.apply(
+    means2d, conics, depths, view_colors, normals, ray_coeffs, ray_offsets, bounds, extents = _ProjectFunction.apply(
         means, quats.to(dtype), scales.to(dtype), sh, opacities.detach().to(dtype), degree, camera,
         width, height, near, far, eps2d,
     )
     proj = Projection(means2d, conics, depths, normals, ray_coeffs, ray_offsets, bounds, extents)
-    return proj, colors
+    return proj, view_colors if given else None
