@@ -33,14 +33,21 @@ import math
 import os
 import statistics
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from polargs_plugin.backends.reference.rasterizer import rasterize
 from polargs_plugin.data.synthetic import generate_scene
-from polargs_plugin.dryrun.standins import gof, graphdeco_2023, graphdeco_2024, gsplat, plane, surfel
+from polargs_plugin.dryrun.standins import (
+    gof,
+    graphdeco_2023,
+    graphdeco_2024,
+    gsplat,
+    plane,
+    surfel,
+)
 from polargs_plugin.geometry import SH_C0
 
 STANDINS = ("graphdeco_2023", "graphdeco_2024", "gof", "plane", "surfel", "gsplat")

@@ -3,19 +3,27 @@ with the per-pixel and per-Gaussian extras the upstream CUDA rasterizers return.
 
 The upstream rasterizers of the graphdeco family all walk each pixel's Gaussians front to back
 with the same rule as :mod:`polargs_plugin.backends.reference.composite_torch` (alpha clamped at
-0.99, skipped under 1/255, stop once T < 1e-4). :func:`splat` runs that rule on the contributing
-(pixel, Gaussian) pairs of the reference backend and composites, besides any per-Gaussian
-feature columns, what the forks add: the alpha, the camera-frame normal, the per-pixel depth of
-the last Gaussian blended while T > 0.5 ("median" depth), the depth distortion of 2DGS/GOF, the
-count of pixels where a Gaussian was blended while T > 0.5 (PGSR's ``out_observe``), and the
-upstream screen radius.
+0.99, skipped under 1/255, stop once T < 1e-4). :func:`splat` composites with that rule, besides
+any per-Gaussian feature columns, what the forks add: the alpha, the camera-frame normal, the
+per-pixel depth, the inverse depth, the per-pixel depth of the last Gaussian blended while T > 0.5
+("median" depth), the depth distortion of 2DGS/GOF, the count of pixels where a Gaussian was
+blended while T > 0.5 (PGSR's ``out_observe``), and the upstream screen radius.
+
+Two paths, chosen by ``backend`` (default "auto": numba on CPU): the compiled projection and
+compositing of the reference backend
+(:func:`~polargs_plugin.backends.reference.composite_numba.composite_features_numba`, tile-threaded,
+hand-written backward; a step costs 1.1-1.3 times the reference rasterizer's, bench/standins.py), and a
+torch path that runs the rule on the contributing (pixel, Gaussian) pairs and index-adds them
+(any device; the tests' oracle for the compiled one). Both give the same outputs and gradients to
+float rounding.
 
 The screen-space means. Upstream trainers pass a zero tensor ``means2D`` (N, 3) whose gradient
 the CUDA backward fills with dL/d(projected mean) in NDC units, i.e. pixels times (W/2, H/2);
 densification reads it. Here that tensor is added to the projected means with those factors,
 so its ``.grad`` is the same quantity (its value, zero, changes nothing). The absolute gradient of
 AbsGS (GOF's ``means2D[:, 2]``, PGSR's ``means2D_abs``), the sum over pixels of each pixel's
-|dL/d mean|, comes from a zero per-pair offset whose backward scatters |grad| into that tensor.
+|dL/d mean|, is summed per Gaussian by the compiled backward; on the torch path it comes from a
+zero per-pair offset whose backward scatters |grad| into that tensor.
 """
 
 from __future__ import annotations
@@ -242,7 +250,7 @@ def composite_splats(
     """The compositing half of :func:`splat`: ``features`` (N, C) and the extras, front to back,
     on the compositing path ``backend`` selects (:func:`~polargs_plugin.backends.reference.rasterizer.resolve_backend`:
     "auto" is the compiled kernel on CPU)."""
-    proj, opac = projected.proj, projected.opacities
+    proj = projected.proj
     if features.dim() != 2 or features.shape[0] != proj.means2d.shape[0]:
         raise ValueError(f"features must be (N, C) with N={proj.means2d.shape[0]}, got {tuple(features.shape)}")
     path = resolve_backend(backend, proj.means2d.device)
@@ -264,7 +272,9 @@ def composite_splats(
 def _composite_numba(projected: Projected, features: Tensor, bins: TileBins, width: int, height: int,
                      screen_abs: Tensor | None) -> tuple[Tensor, ...]:
     """The sums of :class:`SplatOut` (before the distortion's normalisation) from the compiled kernel."""
-    from polargs_plugin.backends.reference.composite_numba import composite_features_numba
+    from polargs_plugin.backends.reference.composite_numba import (
+        composite_features_numba,
+    )
 
     proj = projected.proj
     out = composite_features_numba(

@@ -13,9 +13,21 @@ the same list back to front from each pixel's final transmittance (T_i = T_{i+1}
 alpha <= 0.99 keeps this stable) and sums each (tile, Gaussian) pair's gradient over its pixels
 (row by row, in float64) into its own row, so threads never share a row; a serial kernel then
 sums the rows per Gaussian. Gradients match the torch path (tests/).
+
+What is composited besides the per-pixel depth and the alpha is a matrix of per-Gaussian feature
+columns (:func:`composite_features_numba`): the reference rasterizer's colour, normal and plane
+distance (:func:`composite_numba`), or the dry-run stand-ins' colours or all-maps, normal and
+inverse depth. Its column count reaches the kernels as the length of a tuple, which numba types
+(and caches) as a constant, so that the per-column loops are unrolled as the fixed columns were.
+On request the same walk gives what the upstream CUDA rasterizers add: their median depth (the
+last Gaussian blended while T > 0.5), 2DGS's depth distortion with its gradient (from the
+pixel's sums A = sum w, M1 = sum w m, M2 = sum w m^2 over NDC-mapped depths m, since the
+distortion is A M2 - M1^2), the pixels where each Gaussian was blended while T > 0.5, and the
+sum over a Gaussian's pixels of |dL/d mean2d| (AbsGS).
 """
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from typing import Literal, NamedTuple, get_args
@@ -31,7 +43,7 @@ from .binning import TileBins, tile_centres
 from .composite_torch import ALPHA_MAX, T_MIN, Composite
 from .projection import ALPHA_MIN, Projection
 
-__all__ = ["composite_numba", "composite_features_numba", "FeatureComposite", "MedianRule", "ray_ordered_numba"]
+__all__ = ["FeatureComposite", "MedianRule", "composite_features_numba", "composite_numba", "ray_ordered_numba"]
 
 # Columns of the per-pair gradient rows besides the feature columns: means2d 2, conics 3,
 # opacity 1, ray_coeffs 9, ray_offsets 3, depth_bounds 2, |dL/d mean| 2.
@@ -546,7 +558,7 @@ class _CompositeFunction(torch.autograd.Function):
         observe_t = torch.from_numpy(observe.astype(np.int32))
         ctx.mark_non_differentiable(observe_t)
         bounds = np.cumsum((0, *groups))
-        images = tuple(torch.from_numpy(image[a:b]) for a, b in zip(bounds[:-1], bounds[1:]))
+        images = tuple(torch.from_numpy(image[a:b]) for a, b in itertools.pairwise(bounds))
         return (*images, *(torch.from_numpy(o) for o in outs), observe_t)
 
     @staticmethod
