@@ -63,8 +63,9 @@ def _coeffs(ray_coeffs, g):
 
 @numba.njit(inline="always")
 def _gaussian(g, means2d, conics, opacities, ray_offsets, depth_bounds, features, feat):
-    """Gaussian g's values (its ray coefficients: :func:`_coeffs`) as float64 locals and its
-    feature columns copied into the tile's scratch ``feat``, read once before its pixel loop:
+    """Gaussian g's values (its ray coefficients: :func:`_coeffs`) as locals of the input dtype
+    (numba's ``float`` keeps a float32 a float32) and its feature columns copied into the tile's
+    scratch ``feat``, read once before its pixel loop:
     numba cannot prove that the stores into the pixel state do not alias the inputs, and would
     reload every input at every pixel otherwise."""
     for c in range(feat.shape[0]):
@@ -243,7 +244,7 @@ def _forward_kernel(
         row_active = np.full(tile_size, tw, np.int64)  # pixels of each row still compositing
         active = tw * th
         row_falloff = np.empty(tile_size)  # exp(-sigma) along a row (_row_falloffs)
-        feat = np.empty(nf)  # the current Gaussian's feature columns
+        feat = np.empty(nf, features.dtype)  # the current Gaussian's feature columns (input dtype)
         for j in range(start, end):
             if active == 0:
                 break
@@ -347,7 +348,7 @@ def _backward_kernel(
         row_end = np.full(tile_size, start, np.int64)  # one past the last slot any pixel of the row uses
         end = start
         row_falloff = np.empty(tile_size)  # the forward's exp(-sigma) along a row
-        feat = np.empty(nf)  # the current Gaussian's feature columns
+        feat = np.empty(nf, features.dtype)  # the current Gaussian's feature columns (input dtype)
         d_feat = np.empty(nf)  # and their gradient, summed over the pair's pixels
         for v in range(v0, v0 + th):
             for u in range(u0, u0 + tw):
@@ -413,9 +414,13 @@ def _backward_kernel(
                     tp = trans[p] * keep
                     trans[p] = tp
                     gd, g_dist = grads[p, nf], grads[p, nf + 2]
-                    fg = 0.0  # dL/d(this pair's weight)
-                    for c in range(nf):
-                        fg += feat[c] * grads[p, c]
+                    # dL/d(this pair's weight). The feature products and their sum stay in the
+                    # input dtype, as the reference rasterizer has always computed them: a float64
+                    # sum would change a float32 training in its last bits.
+                    feature_sum = feat[0] * grads[p, 0]
+                    for c in range(1, nf):
+                        feature_sum += feat[c] * grads[p, c]
+                    fg = feature_sum
                     # The depth terms only where the pixel's depth, median depth or distortion has
                     # a gradient (never in a colour-only loss): skipping them adds nothing but zeros.
                     median_here = j == med_j[p]
@@ -645,6 +650,8 @@ def composite_features_numba(
     if distortion_planes is not None and not 0.0 < near < far:
         raise ValueError(f"distortion_planes must be 0 < near < far, got {distortion_planes}")
     groups = tuple(int(f.shape[1]) for f in features)
+    if not groups or min(groups) < 1:
+        raise ValueError(f"features must be one or more (N, C) groups with C >= 1, got columns {groups}")
     dtype = proj.means2d.dtype
     columns = torch.cat([f.to(dtype) for f in features], dim=1)
     rules = _Rules(median == "last_above", near, far, (float(abs_factors[0]), float(abs_factors[1])))
