@@ -43,7 +43,10 @@ from polargs_plugin.backends.reference.composite_torch import (
 from polargs_plugin.backends.reference.projection import Projection, project_gaussians
 from polargs_plugin.backends.reference.rasterizer import Backend, resolve_backend
 
-__all__ = ["NEAR_PLANE", "FAR_PLANE", "SplatOut", "Projected", "project_splats", "composite_splats", "splat", "camera_from_upstream", "compensation", "upstream_radii"]
+__all__ = [
+    "NEAR_PLANE", "FAR_PLANE", "SplatOut", "Projected", "project_splats", "composite_splats", "splat",
+    "camera_from_upstream", "compensation", "upstream_radii",
+]
 
 NEAR_PLANE = 0.2
 """Camera z below which the upstream rasterizers cull a Gaussian (``in_frustum``: z <= 0.2)."""
