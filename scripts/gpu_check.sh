@@ -46,6 +46,20 @@ run_step() {  # name, then the command
   if "$@"; then note "$name: ok"; else note "$name: FAILED"; FAILED=1; fi
 }
 has_module() { "$PYTHON" -c "import $1" >/dev/null 2>&1; }
+missing_modules() {  # those of the modules named that $PYTHON cannot import, space-separated; one process
+  "$PYTHON" - "$@" 2>/dev/null <<'PYEOF'
+import importlib
+import sys
+
+missing = []
+for name in sys.argv[1:]:
+    try:
+        importlib.import_module(name)
+    except Exception:
+        missing.append(name)
+print(" ".join(missing), end="")
+PYEOF
+}
 
 if ! "$PYTHON" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" 2>/dev/null; then
   skip "every step: no CUDA device (torch.cuda.is_available() is False, or torch is missing)"
@@ -54,7 +68,7 @@ if ! "$PYTHON" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() el
 fi
 "$PYTHON" -c "import torch; print('[gpu_check] device:', torch.cuda.get_device_name(0), '| torch', torch.__version__)"
 # The package's requirements for this interpreter: a plain `pip` may install for another one.
-MISSING=$(for m in numpy scipy kornia cv2 imageio numba tqdm; do has_module "$m" || printf '%s ' "$m"; done)
+MISSING=$(missing_modules numpy scipy kornia cv2 imageio numba tqdm)
 if [ -n "$MISSING" ]; then
   note "error: $PYTHON ($("$PYTHON" -c 'import sys; print(sys.executable)')) cannot import: ${MISSING% }; install them for it ($PYTHON -m pip install ...) and run again"
   exit 1

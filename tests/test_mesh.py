@@ -213,6 +213,9 @@ def test_mesh_and_eval_commands_round_trip(tmp_path, monkeypatch, capsys):
     assert main(["mesh", str(run_dir), "--voxel", "0.02", "--alpha-threshold", "0.5"]) == 0
     info = json.loads((run_dir / "tsdf_mesh.json").read_text())
     assert info["voxel_size"] == 0.02 and info["sdf_trunc"] == pytest.approx(0.08) and info["views"] == 8
+    assert info["incidence_trunc"] == 2.0  # the default: truncation widened at grazing incidence
+    assert main(["mesh", str(run_dir), "--voxel", "0.02", "--incidence-trunc", "1", "--out", str(tmp_path / "fixed.ply")]) == 0
+    assert json.loads((tmp_path / "fixed.json").read_text())["incidence_trunc"] == 1.0
 
     assert main(["eval", str(run_dir), "--gt", str(gt_path), "--normals", "--cull", "--num-samples", "60000", "--quiet"]) == 0
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -301,3 +304,69 @@ def test_the_screen_dilation_widens_the_silhouette_of_surface_gaussians():
         widening[eps2d] = float(np.mean(outs))
     assert 1.0 < widening[0.3] < 1.8  # 1.35 px: several grazing disks add up along a ray
     assert abs(widening[0.01]) < 0.35 * widening[0.3]  # 0.32 px: the tangent disks' curvature
+
+
+def _grazing_plane(slope: float):
+    """One camera's exact depth of the plane z = 2 + slope * x, the cosine of each pixel's incidence,
+    and the plane's points at the pixel centres (the surface the view sees)."""
+    K = np.array([[FOCAL, 0, SIZE / 2], [0, FOCAL, SIZE / 2], [0, 0, 1.0]])
+    with np.errstate(divide="ignore"):
+        depth = tilted_plane_depth(slope, K)
+    depth = torch.where((depth > 0) & (depth < 5), depth, torch.zeros_like(depth))
+    u, v = np.meshgrid(np.arange(SIZE) + 0.5, np.arange(SIZE) + 0.5)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)])
+    normal = np.array([-slope, 0.0, 1.0]) / np.hypot(1.0, slope)
+    cosine = np.abs(np.einsum("i,ihw->hw", normal, rays)) / np.linalg.norm(rays, axis=0)
+    seen = depth[0].numpy() > 0
+    points = (depth[0].numpy() * rays)[:, seen].T
+    return depth, torch.from_numpy(cosine[None]).float(), torch.from_numpy(K), points, cosine[seen]
+
+
+def _fuse_plane(depth, cosine, K, cap: float, views: int = 1, min_views: int = 1):
+    return tsdf_fuse([depth] * views, [torch.full((3, SIZE, SIZE), 0.5)] * views, [K] * views,
+                     [torch.eye(4, dtype=torch.float64)] * views, voxel_size=0.02, sdf_trunc=0.08, depth_trunc=5.0,
+                     keep_largest=False, incidences=[cosine] * views, max_trunc_scale=cap, min_views=min_views)
+
+
+def test_incidence_aware_truncation_covers_more_of_a_grazing_plane():
+    # Incidence cosines 0.16-0.83: a fixed truncation of 4 voxels along the rays is a band about one
+    # voxel thick across the steepest part of the plane.
+    slope, voxel = 2.0, 0.02
+    depth, cosine, K, points, point_cosine = _grazing_plane(slope)
+    covered = {}
+    for cap in (1.0, 2.0):
+        mesh = _fuse_plane(depth, cosine, K, cap)
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        distance = scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
+        covered[cap] = float((distance[point_cosine < 0.5] < voxel).mean())
+        # the wider band puts the surface on the plane as closely as the fixed one (0.3 voxel in the mean)
+        p = np.asarray(mesh.vertices)
+        off_plane = np.abs((p[:, 2] - 2.0 - slope * p[:, 0]) / np.hypot(1.0, slope))
+        assert off_plane.mean() < 0.35 * voxel and off_plane.max() < 1.5 * voxel
+    assert covered[2.0] > covered[1.0] + 0.05, covered
+
+
+def test_incidence_aware_truncation_changes_nothing_at_normal_incidence_and_counts_views():
+    depth, cosine, K, _, _ = _grazing_plane(0.2)
+    facing = torch.ones_like(cosine)  # every pixel seen head-on: scale 1 everywhere
+    plain, scaled = _fuse_plane(depth, facing, K, 1.0), _fuse_plane(depth, facing, K, 2.0)
+    def in_order(mesh):  # open3d's hash map lists the vertices in no fixed order
+        vertices = np.asarray(mesh.vertices)
+        return vertices[np.lexsort(vertices.T)]
+
+    np.testing.assert_array_equal(in_order(plain), in_order(scaled))
+    # one integration pass per truncation level, but a voxel's weight still counts views
+    depth, cosine, K, _, _ = _grazing_plane(2.0)
+    assert len(_fuse_plane(depth, cosine, K, 2.0, views=2, min_views=2).triangles) > 0
+    assert len(_fuse_plane(depth, cosine, K, 2.0, views=2, min_views=3).triangles) == 0
+
+
+def test_incidence_aware_truncation_rejects_bad_input():
+    depth, cosine, K, _, _ = _grazing_plane(0.5)
+    with pytest.raises(ValueError, match="max_trunc_scale must be a number >= 1"):
+        _fuse_plane(depth, cosine, K, 0.5)
+    with pytest.raises(ValueError, match="needs one incidence map per depth map"):
+        tsdf_fuse([depth], [torch.full((3, SIZE, SIZE), 0.5)], [K], [torch.eye(4)], max_trunc_scale=2.0)
+    with pytest.raises(ValueError, match=r"incidence 0 must be \(1, 80, 80\)"):
+        _fuse_plane(depth, cosine[0], K, 2.0)

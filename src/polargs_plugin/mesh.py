@@ -122,6 +122,8 @@ def tsdf_fuse(
     alphas: Sequence[Tensor] | Tensor | None = None,
     alpha_threshold: float | None = None,
     min_views: int = 1,
+    incidences: Sequence[Tensor] | Tensor | None = None,
+    max_trunc_scale: float = 1.0,
     progress: bool = False,
 ) -> o3d.geometry.TriangleMesh:
     """Fuse per-view depth and colour into a triangle mesh (open3d VoxelBlockGrid on CPU).
@@ -141,6 +143,14 @@ def tsdf_fuse(
         alphas: optional V accumulated opacities (1, H, W), used with ``alpha_threshold``.
         alpha_threshold: depth is zeroed where alpha < threshold (GOF uses 0.5).
         min_views: voxels integrated from fewer views than this are not meshed.
+        incidences: optional V maps (1, H, W) of the cosine between each pixel's surface normal
+            and its viewing ray (e.g. from the rendered normals), used with ``max_trunc_scale``.
+        max_trunc_scale: with ``incidences``, each pixel's SDF truncation is ``sdf_trunc``
+            times 1/cos, capped at this and rounded to a multiple of 0.5 (1 disables). The SDF
+            a view measures runs along its rays, 1/cos times the distance from the surface, so
+            a fixed truncation gives a grazing view a band only ``sdf_trunc * cos`` thick around
+            the surface, often thinner than a voxel; the scaled truncation keeps the band's
+            thickness, and the stored TSDF values the same scale, at every incidence.
         progress: show a tqdm progress bar over the views.
 
     Returns:
@@ -150,6 +160,7 @@ def tsdf_fuse(
     num = len(depths)
     _check_fusion_inputs(num, colors, Ks, world_to_cameras, masks, alphas, alpha_threshold)
     _check_lengths(voxel_size=voxel_size, sdf_trunc=sdf_trunc, depth_trunc=depth_trunc)
+    _check_incidences(num, incidences, max_trunc_scale)
     grid = _voxel_grid(voxel_size)
     trunc_multiplier = float(sdf_trunc) / float(voxel_size)
     integrated = 0
@@ -159,7 +170,8 @@ def tsdf_fuse(
         view = _measured_view(i, depths, colors, masks, alphas, alpha_threshold, depth_trunc)
         if view is None:
             continue  # open3d refuses a frame that touches no block
-        _integrate(grid, i, *view, Ks[i], world_to_cameras[i], voxel_size, trunc_multiplier, depth_trunc)
+        scales = _trunc_scales(i, incidences, max_trunc_scale, view[0].shape)
+        _integrate(grid, i, *view, Ks[i], world_to_cameras[i], voxel_size, trunc_multiplier, depth_trunc, scales)
         integrated += 1
 
     if integrated == 0:
@@ -182,6 +194,32 @@ def _check_fusion_inputs(num: int, colors, Ks, world_to_cameras, masks, alphas, 
         raise ValueError(f"tsdf_fuse: {num} depth maps but {len(masks)} masks")
     if alpha_threshold is not None and (alphas is None or len(alphas) != num):
         raise ValueError("tsdf_fuse: alpha_threshold needs one alpha map per depth map")
+
+
+def _check_incidences(num: int, incidences, max_trunc_scale: float) -> None:
+    """ValueError unless ``max_trunc_scale`` >= 1 and, when it is above 1, there is one incidence map per view."""
+    if not (np.isfinite(max_trunc_scale) and max_trunc_scale >= 1.0):
+        raise ValueError(f"tsdf_fuse: max_trunc_scale must be a number >= 1, got {max_trunc_scale}")
+    if max_trunc_scale > 1.0 and (incidences is None or len(incidences) != num):
+        raise ValueError("tsdf_fuse: max_trunc_scale > 1 needs one incidence map per depth map")
+
+
+# Truncation scales are rounded to this step: each distinct scale costs one integration pass.
+_TRUNC_SCALE_STEP = 0.5
+
+
+def _trunc_scales(i: int, incidences, max_trunc_scale: float, shape: tuple[int, int]) -> np.ndarray | None:
+    """View ``i``'s per-pixel truncation scale (H, W): 1/|cos| capped at ``max_trunc_scale``, rounded
+    to a multiple of 0.5; None when the scale is 1 everywhere (no incidence-aware truncation)."""
+    if max_trunc_scale <= 1.0:
+        return None
+    cosine = _numpy(incidences[i], np.float64)
+    if cosine.shape != (1, *shape):
+        raise ValueError(f"tsdf_fuse: incidence {i} must be (1, {shape[0]}, {shape[1]}), got {cosine.shape}")
+    # A non-finite cosine (no normal) gets the widest band, as a grazing pixel would.
+    cosine = np.nan_to_num(np.abs(cosine[0]), nan=0.0, posinf=0.0, neginf=0.0)
+    scale = np.minimum(1.0 / np.maximum(cosine, 1e-6), max_trunc_scale)
+    return np.maximum(np.round(scale / _TRUNC_SCALE_STEP) * _TRUNC_SCALE_STEP, 1.0)
 
 
 def _voxel_grid(voxel_size: float) -> o3d.t.geometry.VoxelBlockGrid:
@@ -238,12 +276,17 @@ def _integrate(
     voxel_size: float,
     trunc_multiplier: float,
     depth_trunc: float,
+    trunc_scales: np.ndarray | None = None,
 ) -> None:
-    """Integrate view ``i`` (:func:`_measured_view`) into ``grid``."""
+    """Integrate view ``i`` (:func:`_measured_view`) into ``grid``; with ``trunc_scales``
+    (:func:`_trunc_scales`), once per distinct scale, each pass with only that scale's pixels.
+
+    A voxel reads the one pixel it projects to, so each view still updates a voxel at most once
+    and the voxel weights still count views."""
     extrinsic = _numpy(world_to_camera, np.float64)
     if extrinsic.shape != (4, 4):
         raise ValueError(f"tsdf_fuse: world_to_camera {i} must be (4, 4), got {extrinsic.shape}")
-    depth_image = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth[..., None])))
+    depth_image = _depth_image(depth)
     color_image = o3d.t.geometry.Image(
         o3c.Tensor(np.ascontiguousarray(np.clip(np.nan_to_num(color), 0.0, 1.0).transpose(1, 2, 0)))
     )
@@ -258,14 +301,27 @@ def _integrate(
     # pixel covers more than that, blocks between neighbouring pixels would stay unallocated
     # and the mesh would come out in fragments. Touch at least one pixel footprint.
     footprint = float(depth[~invalid].max()) / float(min(k[0, 0], k[1, 1]))
+    widest = 1.0 if trunc_scales is None else float(trunc_scales[~invalid].max())
+    # Blocks for every pass at once: a pass over a handful of pixels may touch no block of its own.
     blocks = grid.compute_unique_block_coordinates(
         depth_image, intrinsic, extrinsic, 1.0, float(depth_trunc),
-        trunc_voxel_multiplier=max(trunc_multiplier, 2.0 * footprint / float(voxel_size)),
+        trunc_voxel_multiplier=max(trunc_multiplier * widest, 2.0 * footprint / float(voxel_size)),
     )
-    grid.integrate(
-        blocks, depth_image, color_image, intrinsic, intrinsic, extrinsic, 1.0, float(depth_trunc),
-        trunc_voxel_multiplier=trunc_multiplier,
-    )
+    if trunc_scales is None:
+        passes = [(1.0, depth_image)]
+    else:
+        passes = [(float(scale), _depth_image(np.where(trunc_scales == scale, depth, 0.0)))
+                  for scale in np.unique(trunc_scales[~invalid])]
+    for scale, image in passes:
+        grid.integrate(
+            blocks, image, color_image, intrinsic, intrinsic, extrinsic, 1.0, float(depth_trunc),
+            trunc_voxel_multiplier=trunc_multiplier * scale,
+        )
+
+
+def _depth_image(depth: np.ndarray) -> o3d.t.geometry.Image:
+    """An open3d float32 depth image (H, W, 1) of ``depth`` (H, W)."""
+    return o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth.astype(np.float32)[..., None])))
 
 
 def write_mesh(path: str | os.PathLike, mesh: o3d.geometry.TriangleMesh) -> Path:

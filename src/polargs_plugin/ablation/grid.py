@@ -63,6 +63,8 @@ class GridOptions:
         train_overrides / polar_overrides: nested partial dicts of TrainConfig / PolarConfig fields.
         mesh_preset: TSDF settings (``synthetic`` or ``paper``).
         voxel: TSDF voxel (None: the preset's; bundled scenes scale it to 1 / min(W, H)).
+        incidence_trunc: cap of the TSDF truncation's 1/cos widening (``polargs mesh --incidence-trunc``;
+            1 gives every pixel the preset's truncation).
         eval_samples: points sampled per mesh for Chamfer.
         cull: cull predicted points to the object region before Chamfer.
         threads: torch threads of each run.
@@ -84,6 +86,7 @@ class GridOptions:
     polar_overrides: dict[str, Any] = field(default_factory=dict)
     mesh_preset: str = "synthetic"
     voxel: float | None = None
+    incidence_trunc: float = 2.0
     eval_samples: int = 1_000_000
     cull: bool = True
     threads: int = 1
@@ -127,6 +130,9 @@ def _mesh_settings(options: GridOptions, scene: SceneSpec) -> dict[str, Any]:
         mesh["voxel"] = options.voxel
     elif scene.bundled is not None and options.mesh_preset == "synthetic" and min(width, height) != 128:
         mesh["voxel"] = 1.0 / min(width, height)  # the preset's voxel (1/128 at 128 px) per pixel size (trained)
+    if options.incidence_trunc != GridOptions.incidence_trunc:
+        # only when set: the cells of grids from before the option keep their fingerprints (and resume)
+        mesh["incidence_trunc"] = options.incidence_trunc
     return mesh
 
 

@@ -189,7 +189,8 @@ def _mesh(cell: Cell, trainer, views: list, tmp: Path) -> None:
     settings = MeshSettings(preset=cell.mesh.get("preset", "synthetic"), voxel=cell.mesh.get("voxel"),
                             sdf_trunc=cell.mesh.get("sdf_trunc"), depth_trunc=cell.mesh.get("depth_trunc"),
                             alpha_threshold=cell.mesh.get("alpha_threshold", 0.5),
-                            min_cluster=cell.mesh.get("min_cluster", 0.05))
+                            min_cluster=cell.mesh.get("min_cluster", 0.05),
+                            incidence_trunc=cell.mesh.get("incidence_trunc", MeshSettings.incidence_trunc))
     result = fuse_model(_trained_model(trainer), views, settings, source=str(_published(tmp, tmp, cell)))
     write_mesh_result(result, tmp / MESH_NAME)
     canonical_mesh_order(tmp / MESH_NAME)

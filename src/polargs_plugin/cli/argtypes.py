@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["image_size", "positive_int", "non_negative_int", "positive_float"]
+__all__ = ["image_size", "positive_int", "non_negative_int", "positive_float", "factor_at_least_one"]
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -50,4 +50,12 @@ def positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
     if not (value > 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def factor_at_least_one(text: str) -> float:
+    """A finite number >= 1 (a widening factor; 1 leaves things as they are)."""
+    value = positive_float(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
     return value

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from polargs_plugin.cli.argtypes import factor_at_least_one
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.mesh import MeshSettings, mesh_run
 from polargs_plugin.service.runs import MESH_NAME, load_run
@@ -46,6 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--min-cluster", type=float, default=0.05, metavar="FRACTION",
                         help="drop connected pieces with fewer triangles than FRACTION of the largest "
                         "(default 0.05; 1 keeps only the largest, 0 keeps all)")
+    parser.add_argument("--incidence-trunc", type=factor_at_least_one, default=2.0, metavar="FACTOR",
+                        help="widen each pixel's SDF truncation by 1/cos of its incidence angle, up to FACTOR "
+                        "(default 2; 1 disables): closes holes where views see the surface at grazing angles")
     parser.add_argument("--out", type=Path, help=f"output mesh (default RUN_DIR/{MESH_NAME})")
     parser.add_argument("--data", metavar="NEW_PATH", default=None,
                         help="the run's dataset, moved since training (checked against the run's fingerprint.json)")
@@ -57,7 +61,7 @@ def settings_from_args(args: argparse.Namespace) -> MeshSettings:
     """The :class:`MeshSettings` of parsed ``polargs mesh`` options."""
     return MeshSettings(preset=args.preset, voxel=args.voxel, sdf_trunc=args.sdf_trunc, depth_trunc=args.depth_trunc,
                         depth=args.depth, alpha_threshold=args.alpha_threshold, masks=not args.no_masks,
-                        min_cluster=args.min_cluster)
+                        min_cluster=args.min_cluster, incidence_trunc=args.incidence_trunc)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -41,6 +41,10 @@ class MeshSettings:
         masks: restrict fusion to the views' object masks (default True).
         min_cluster: connected pieces with fewer triangles than this fraction of the largest are
             dropped (default 0.05; 1 keeps only the largest, 0 keeps all).
+        incidence_trunc: a pixel's SDF truncation is the preset's times 1/cos of its incidence
+            angle (from the rendered normal), capped at this factor (default 2; 1 gives every
+            pixel the preset's): a fixed truncation leaves the surface that views see at grazing
+            angles a band thinner than a voxel, and holes there (docs/evaluation.md).
     """
 
     preset: Literal["synthetic", "paper"] = "synthetic"
@@ -51,6 +55,7 @@ class MeshSettings:
     alpha_threshold: float = 0.5
     masks: bool = True
     min_cluster: float = 0.05
+    incidence_trunc: float = 2.0
 
     def tsdf(self, source: str = "mesh") -> dict[str, float]:
         """``voxel_size``, ``sdf_trunc``, ``depth_trunc`` (scene units) of these settings;
@@ -58,6 +63,8 @@ class MeshSettings:
         from polargs_plugin.mesh import mesh_settings
 
         try:
+            if not self.incidence_trunc >= 1.0:  # NaN too
+                raise ValueError(f"incidence_trunc must be a number >= 1, got {self.incidence_trunc}")
             return mesh_settings(self.preset, self.voxel, self.sdf_trunc, self.depth_trunc)
         except ValueError as err:
             raise PolarInputError(source, f"bad TSDF settings: {err}") from None
@@ -96,11 +103,12 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
     import torch
     from tqdm import tqdm
 
+    from polargs_plugin.densify.filters import incidence_cosine
     from polargs_plugin.mesh import tsdf_fuse
 
     tsdf = settings.tsdf(source or "mesh")
     start = time.perf_counter()
-    depths, colors, Ks, w2cs, masks, alphas = [], [], [], [], [], []
+    depths, colors, Ks, w2cs, masks, alphas, incidences = [], [], [], [], [], [], []
     with torch.no_grad():
         for view in tqdm(views, desc="rendering", unit="view", disable=not progress):
             out = model.render_output(view)
@@ -108,6 +116,9 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
             if depth is None:
                 raise PolarInputError(source or "mesh", "the renderer returns no median depth; use --depth expected")
             depths.append(depth.cpu())
+            if settings.incidence_trunc > 1.0:
+                incidences.append(incidence_cosine(depth, out.normal, view.K, view.world_to_camera,
+                                                   view.world_to_camera).cpu())
             colors.append(out.color.clamp(0, 1).cpu())
             alphas.append(out.alpha.cpu())
             masks.append(view.mask if settings.masks else None)
@@ -116,7 +127,8 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
     threshold = settings.alpha_threshold if settings.alpha_threshold > 0 else None
     keep = settings.min_cluster if settings.min_cluster > 0 else False
     mesh = tsdf_fuse(depths, colors, Ks, w2cs, masks=masks, keep_largest=keep, alphas=alphas,
-                     alpha_threshold=threshold, progress=progress, **tsdf)
+                     alpha_threshold=threshold, incidences=incidences or None,
+                     max_trunc_scale=settings.incidence_trunc, progress=progress, **tsdf)
     if len(mesh.triangles) == 0:
         raise PolarInputError(source or "mesh", "the fused mesh is empty (check depth truncation, masks and alpha threshold)")
     info = {
@@ -127,6 +139,7 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
         "alpha_threshold": threshold,
         "masks": settings.masks,
         "min_cluster_fraction": settings.min_cluster,
+        "incidence_trunc": settings.incidence_trunc,
         "views": len(views),
         "vertices": len(mesh.vertices),
         "triangles": len(mesh.triangles),
