@@ -210,7 +210,7 @@ _TRUNC_SCALE_STEP = 0.5
 
 def _trunc_scales(i: int, incidences, max_trunc_scale: float, shape: tuple[int, int]) -> np.ndarray | None:
     """View ``i``'s per-pixel truncation scale (H, W): 1/|cos| capped at ``max_trunc_scale``, rounded
-    to a multiple of 0.5; None when the scale is 1 everywhere (no incidence-aware truncation)."""
+    to a multiple of 0.5; None when ``max_trunc_scale`` is 1 (no incidence-aware truncation)."""
     if max_trunc_scale <= 1.0:
         return None
     cosine = _numpy(incidences[i], np.float64)
@@ -307,12 +307,10 @@ def _integrate(
         depth_image, intrinsic, extrinsic, 1.0, float(depth_trunc),
         trunc_voxel_multiplier=max(trunc_multiplier * widest, 2.0 * footprint / float(voxel_size)),
     )
-    if trunc_scales is None:
-        passes = [(1.0, depth_image)]
-    else:
-        passes = [(float(scale), _depth_image(np.where(trunc_scales == scale, depth, 0.0)))
-                  for scale in np.unique(trunc_scales[~invalid])]
-    for scale, image in passes:
+    scales = [1.0] if trunc_scales is None else np.unique(trunc_scales[~invalid]).tolist()
+    for scale in scales:
+        # With one scale the pass is the whole view: no masked copy of the depth.
+        image = depth_image if len(scales) == 1 else _depth_image(np.where(trunc_scales == scale, depth, 0.0))
         grid.integrate(
             blocks, image, color_image, intrinsic, intrinsic, extrinsic, 1.0, float(depth_trunc),
             trunc_voxel_multiplier=trunc_multiplier * scale,
@@ -321,7 +319,7 @@ def _integrate(
 
 def _depth_image(depth: np.ndarray) -> o3d.t.geometry.Image:
     """An open3d float32 depth image (H, W, 1) of ``depth`` (H, W)."""
-    return o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth.astype(np.float32)[..., None])))
+    return o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth[..., None], dtype=np.float32)))
 
 
 def write_mesh(path: str | os.PathLike, mesh: o3d.geometry.TriangleMesh) -> Path:

@@ -30,6 +30,7 @@ from polargs_plugin.ablation.scenes import SceneSpec, ensure_scene, parse_scene
 from polargs_plugin.ablation.spec import INITS
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.data import ReaderOptions
+from polargs_plugin.service.mesh import MeshSettings
 
 __all__ = ["GridOptions", "build_cells", "expand", "run_grid", "GridResult", "default_jobs", "write_grid_file", "GRID_FILE"]
 
@@ -86,7 +87,7 @@ class GridOptions:
     polar_overrides: dict[str, Any] = field(default_factory=dict)
     mesh_preset: str = "synthetic"
     voxel: float | None = None
-    incidence_trunc: float = 2.0
+    incidence_trunc: float = MeshSettings.incidence_trunc
     eval_samples: int = 1_000_000
     cull: bool = True
     threads: int = 1
@@ -130,7 +131,7 @@ def _mesh_settings(options: GridOptions, scene: SceneSpec) -> dict[str, Any]:
         mesh["voxel"] = options.voxel
     elif scene.bundled is not None and options.mesh_preset == "synthetic" and min(width, height) != 128:
         mesh["voxel"] = 1.0 / min(width, height)  # the preset's voxel (1/128 at 128 px) per pixel size (trained)
-    if options.incidence_trunc != GridOptions.incidence_trunc:
+    if options.incidence_trunc != MeshSettings.incidence_trunc:
         # only when set: the cells of grids from before the option keep their fingerprints (and resume)
         mesh["incidence_trunc"] = options.incidence_trunc
     return mesh

@@ -16,6 +16,7 @@ from polargs_plugin.ablation.variants import DESCRIPTIONS, PRESETS, VARIANTS
 from polargs_plugin.cli.argtypes import factor_at_least_one, image_size, non_negative_int, positive_float, positive_int
 from polargs_plugin.cli.common import add_reader_options, command_line_of, on_stop_signals, reader_options
 from polargs_plugin.io import PolarInputError
+from polargs_plugin.service.mesh import MeshSettings
 
 if TYPE_CHECKING:
     from polargs_plugin.ablation.grid import GridOptions
@@ -96,8 +97,9 @@ def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "1/6:
     p.add_argument("--mesh-preset", choices=("synthetic", "paper"), default="synthetic", help="TSDF settings (polargs mesh --preset; default synthetic)")
     p.add_argument("--voxel", type=positive_float, default=None,
                    help="TSDF voxel (default: the preset's; for bundled scenes scaled to the image size, 1 / min(W, H))")
-    p.add_argument("--incidence-trunc", type=factor_at_least_one, default=2.0, metavar="FACTOR",
-                   help="TSDF truncation widened by 1/cos of each pixel's incidence, up to FACTOR (polargs mesh --incidence-trunc; default 2, 1 disables)")
+    p.add_argument("--incidence-trunc", type=factor_at_least_one, default=MeshSettings.incidence_trunc, metavar="FACTOR",
+                   help="TSDF truncation widened by 1/cos of each pixel's incidence, up to FACTOR "
+                   f"(polargs mesh --incidence-trunc; default {MeshSettings.incidence_trunc:g}, 1 disables)")
     p.add_argument("--eval-samples", type=positive_int, default=1_000_000, metavar="N", help="points sampled per mesh for Chamfer (default 1e6)")
     p.add_argument("--no-cull", action="store_true", help="do not cull predicted points to the view masks before Chamfer")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
@@ -201,7 +203,8 @@ def grid_options(args: argparse.Namespace) -> "GridOptions":
         train_overrides=parse_assignments(args.train_set, "--train-set"),
         polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
         mesh_preset=args.mesh_preset, voxel=args.voxel, incidence_trunc=args.incidence_trunc,
-        eval_samples=args.eval_samples, cull=not args.no_cull, threads=args.threads_per_run, device=args.device, checkpoint_every=getattr(args, "checkpoint_every", None),
+        eval_samples=args.eval_samples, cull=not args.no_cull, threads=args.threads_per_run, device=args.device,
+        checkpoint_every=getattr(args, "checkpoint_every", None),
         reader=reader_options(args), command=command_line_of(args, args.command),
     )
 
@@ -374,7 +377,8 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
     for flag, value, default in (("--preset", args.preset, "cpu"), ("--factor", args.factor, None), ("--iters", args.iters, None),
                                  ("--init", args.init, "hull"), ("--views", args.views, None), ("--size", size, None),
                                  ("--mesh-preset", args.mesh_preset, "synthetic"), ("--voxel", args.voxel, None),
-                                 ("--incidence-trunc", args.incidence_trunc, 2.0), ("--eval-samples", args.eval_samples, 1_000_000), ("--threads-per-run", args.threads_per_run, 1)):
+                                 ("--incidence-trunc", args.incidence_trunc, MeshSettings.incidence_trunc),
+                                 ("--eval-samples", args.eval_samples, 1_000_000), ("--threads-per-run", args.threads_per_run, 1)):
         if value != default:
             parts += [flag, str(value)]
     if args.scene_cache is not None:

@@ -47,9 +47,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--min-cluster", type=float, default=0.05, metavar="FRACTION",
                         help="drop connected pieces with fewer triangles than FRACTION of the largest "
                         "(default 0.05; 1 keeps only the largest, 0 keeps all)")
-    parser.add_argument("--incidence-trunc", type=factor_at_least_one, default=2.0, metavar="FACTOR",
+    parser.add_argument("--incidence-trunc", type=factor_at_least_one, default=MeshSettings.incidence_trunc, metavar="FACTOR",
                         help="widen each pixel's SDF truncation by 1/cos of its incidence angle, up to FACTOR "
-                        "(default 2; 1 disables): closes holes where views see the surface at grazing angles")
+                        f"(default {MeshSettings.incidence_trunc:g}; 1 disables): closes holes where views see "
+                        "the surface at grazing angles")
     parser.add_argument("--out", type=Path, help=f"output mesh (default RUN_DIR/{MESH_NAME})")
     parser.add_argument("--data", metavar="NEW_PATH", default=None,
                         help="the run's dataset, moved since training (checked against the run's fingerprint.json)")
