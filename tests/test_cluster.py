@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from polargs_plugin.ablation import cell as cell_module
+from polargs_plugin.ablation import resume as resume_module
 from polargs_plugin.ablation.cell import Cell
 from polargs_plugin.ablation.executors import (
     CellStatus,
@@ -154,6 +155,25 @@ def test_debug_array_failure_resubmit_and_retry(debug_grid, monkeypatch, capsys)
 
 
 @pytest.mark.slow
+def test_a_lost_requeue_exit_ends_the_next_step_with_the_requeue_status():
+    """When the preemption handler's own exit is swallowed on the way (a finaliser drops what it
+    raises), the next training step ends the run with the status the handler was exiting with
+    (submitit's local controller requeues on it), and without one known, as an interruption."""
+    step = resume_module._recording_trainer_class().step
+    try:
+        resume_module.mark_interrupted(exit_code=144)
+        with pytest.raises(SystemExit) as exit_info:
+            step(None)  # raises before touching the trainer
+        assert exit_info.value.code == 144
+        assert resume_module.is_interruption(exit_info.value)
+        resume_module.mark_interrupted()
+        with pytest.raises(KeyboardInterrupt):
+            step(None)
+    finally:
+        resume_module.mark_interrupted(False)
+    assert resume_module._EXIT_CODE is None and not resume_module.is_interruption(SystemExit(144))
+
+
 def test_preempted_local_job_resumes_to_the_same_figures(debug_grid, tmp_path, capsys):
     """submitit's local executor: the job is preempted (USR2, as Slurm sends) after its first
     periodic checkpoint, requeued by submitit, resumes from the checkpoint and ends with the

@@ -99,8 +99,18 @@ class CellJob:
         """submitit's preemption / timeout hook: the same call again (run_cell resumes by itself)."""
         from submitit.helpers import DelayedSubmission
 
-        mark_interrupted()  # the SystemExit that follows passes through run_cell as an interruption
+        # the SystemExit that follows passes through run_cell as an interruption
+        mark_interrupted(exit_code=_requeue_exit_code())
         return DelayedSubmission(self, cell_data)
+
+
+def _requeue_exit_code() -> int:
+    """The status with which submitit's handler ends a job it requeues: the local executor's own
+    code (its controller requeues on it), else -1 (Slurm requeues through scontrol before the exit)."""
+    import submitit
+    from submitit.local.local import LOCAL_REQUEUE_RETURN_CODE
+
+    return LOCAL_REQUEUE_RETURN_CODE if submitit.JobEnvironment().cluster == "local" else -1
 
 
 # ----------------------------------------------------------------------------- jobs.json

@@ -28,16 +28,20 @@ PARTIAL_LOG = "attempts.log"
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
 
 _INTERRUPTED = False
+_EXIT_CODE: int | None = None  # the status the interrupting handler exits with (None: not known)
 
 
-def mark_interrupted(interrupted: bool = True) -> None:
+def mark_interrupted(interrupted: bool = True, exit_code: int | None = None) -> None:
     """Called by a job's preemption / timeout handler (submitit's ``checkpoint``) before it exits,
     or by a pool worker's signal handler: the ``SystemExit`` that follows, or whatever the
     interruption turns into (an import it breaks fails with ImportError), is an interruption (the
     partial checkpoint is kept and the exception passes through unchanged), not a failure.
+    ``exit_code``: the status the handler ends the process with (a requeue's), with which the next
+    training step ends the run if the handler's own exit was lost on the way.
     ``interrupted=False`` clears the mark (a pool worker before its next cell)."""
-    global _INTERRUPTED
+    global _INTERRUPTED, _EXIT_CODE
     _INTERRUPTED = interrupted
+    _EXIT_CODE = exit_code if interrupted else None
 
 
 def is_interruption(err: BaseException) -> bool:
@@ -82,8 +86,11 @@ def _recording_trainer_class() -> type:
             return super().save_checkpoint(path)
 
         def step(self) -> dict[str, float]:
-            if _INTERRUPTED:  # an interruption that a library swallowed on the way (an `except ImportError`)
-                raise KeyboardInterrupt
+            if _INTERRUPTED:
+                # the interruption's own exception was swallowed on the way (an `except ImportError`,
+                # a finaliser, which drops what it raises): end the run as the handler was ending it,
+                # so that a requeue still reads as one
+                raise KeyboardInterrupt if _EXIT_CODE is None else SystemExit(_EXIT_CODE)
             logs = super().step()
             self.curve.append({
                 "iteration": self.iteration,
