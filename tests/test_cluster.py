@@ -154,7 +154,6 @@ def test_debug_array_failure_resubmit_and_retry(debug_grid, monkeypatch, capsys)
     assert "| reg |" in (out / "results.md").read_text()
 
 
-@pytest.mark.slow
 def test_a_lost_requeue_exit_ends_the_next_step_with_the_requeue_status():
     """When the preemption handler's own exit is swallowed on the way (a finaliser drops what it
     raises), the next training step ends the run with the status the handler was exiting with
@@ -174,6 +173,7 @@ def test_a_lost_requeue_exit_ends_the_next_step_with_the_requeue_status():
     assert resume_module._EXIT_CODE is None and not resume_module.is_interruption(SystemExit(144))
 
 
+@pytest.mark.slow
 def test_preempted_local_job_resumes_to_the_same_figures(debug_grid, tmp_path, capsys):
     """submitit's local executor: the job is preempted (USR2, as Slurm sends) after its first
     periodic checkpoint, requeued by submitit, resumes from the checkpoint and ends with the
