@@ -136,6 +136,20 @@ def test_keep_largest_cluster_drops_floater():
     assert len(keep_largest_cluster(big + tiny, min_fraction=0.5).triangles) == len(big.triangles)
 
 
+def test_keep_largest_cluster_spares_the_pieces_it_is_told_to():
+    big = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=10)
+    tiny = o3d.geometry.TriangleMesh.create_sphere(radius=0.1, resolution=3).translate((3.0, 0, 0))
+    vertices = np.asarray((big + tiny).vertices)
+    in_tiny = vertices[:, 0] > 2.0
+    kept = keep_largest_cluster(big + tiny, min_fraction=0.5, spared=in_tiny)
+    assert len(kept.triangles) == len(big.triangles) + len(tiny.triangles)
+    # under the share: a tiny sphere with a third of its vertices spared is dropped
+    part = in_tiny & (np.cumsum(in_tiny) <= in_tiny.sum() // 3)
+    assert len(keep_largest_cluster(big + tiny, min_fraction=0.5, spared=part).triangles) == len(big.triangles)
+    with pytest.raises(ValueError, match="spared must be"):
+        keep_largest_cluster(big + tiny, min_fraction=0.5, spared=np.ones(3, dtype=bool))
+
+
 def test_mesh_settings_presets_and_overrides():
     assert MESH_PRESETS["paper"] == {"voxel_size": 0.008, "sdf_trunc": 0.04, "depth_trunc": 10.0}
     s = mesh_settings("paper", voxel_size=0.004)
@@ -370,3 +384,95 @@ def test_incidence_aware_truncation_rejects_bad_input():
         tsdf_fuse([depth], [torch.full((3, SIZE, SIZE), 0.5)], [K], [torch.eye(4)], max_trunc_scale=2.0)
     with pytest.raises(ValueError, match=r"incidence 0 must be \(1, 80, 80\)"):
         _fuse_plane(depth, cosine[0], K, 2.0)
+
+
+class _HalfTransparentSphere:
+    """A stand-in for a trained model: renders the exact sphere of :func:`sphere_inputs`, opaque
+    (alpha 0.9) where the surface point lies above z = 0 and partly transparent (alpha 0.35, so
+    no median depth) below, as flat Gaussians render the surface views see at grazing angles."""
+
+    def __init__(self, views):
+        self.views = {view.name: view for view in views}
+
+    def render_output(self, view):
+        depth, hit = sphere_depth(view.K.numpy(), view.world_to_camera.numpy(), RADIUS)
+        K, w2c = view.K.numpy(), view.world_to_camera.numpy()
+        u, v = np.meshgrid(np.arange(SIZE) + 0.5, np.arange(SIZE) + 0.5)
+        cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) * depth[0].numpy()[..., None]
+        world_z = ((cam - w2c[:3, 3]) @ w2c[:3, :3])[..., 2]
+        alpha = torch.from_numpy(np.where(hit[0].numpy(), np.where(world_z > 0, 0.9, 0.35), 0.0)[None]).float()
+        median = torch.where(alpha >= 0.5, depth, torch.zeros_like(depth))
+        return RenderOut(color=torch.full((3, SIZE, SIZE), 0.5), depth=depth, normal=torch.zeros(3, SIZE, SIZE),
+                         alpha=alpha, median_depth=median)
+
+
+def test_partial_alpha_fuses_the_partly_transparent_surface_inside_the_masks():
+    """The lower half of the sphere renders partly transparent: the default fusion keeps it (the
+    mesh is the whole sphere, within 1.5 voxels), with the partial fusion turned off, or without
+    masks, the mesh stops at the equator."""
+    from polargs_plugin.service.mesh import MeshSettings, fuse_model
+
+    depths, _, Ks, w2cs, masks = sphere_inputs()
+    views = [View(name=f"v{i}", K=K, world_to_camera=w2c, stokes=torch.zeros(3, 3, SIZE, SIZE), mask=mask)
+             for i, (K, w2c, mask) in enumerate(zip(Ks, w2cs, masks))]
+    model = _HalfTransparentSphere(views)
+    voxel = 0.02
+    settings = dict(voxel=voxel, sdf_trunc=4 * voxel, incidence_trunc=1.0)
+    whole = fuse_model(model, views, MeshSettings(**settings))
+    truth = o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=80)
+    assert chamfer_distance(whole.mesh, truth, num_samples=40_000, seed=1)["chamfer"] < 1.5 * voxel
+    assert np.asarray(whole.mesh.vertices)[:, 2].min() < -0.95 * RADIUS
+    assert whole.info["partial_alpha"] == MeshSettings.partial_alpha
+    for off in (MeshSettings(partial_alpha=0.5, **settings), MeshSettings(masks=False, **settings)):
+        half = fuse_model(model, views, off)
+        assert np.asarray(half.mesh.vertices)[:, 2].min() > -0.2 * RADIUS
+        assert half.info["partial_alpha"] is None
+
+
+def test_partial_alpha_rejects_bad_values():
+    from polargs_plugin.service.mesh import MeshSettings
+
+    for bad in (dict(partial_alpha=-0.1), dict(partial_alpha=float("nan")), dict(alpha_threshold=1.5)):
+        with pytest.raises(PolarInputError, match="must be a number in"):
+            MeshSettings(**bad).tsdf("run")
+
+
+class _CutSphere:
+    """A stand-in for a trained model: the exact sphere of :func:`sphere_inputs`, with a band of
+    its surface (world z in [-0.95, -0.8] radii) not rendered, so the cap below it fuses into a
+    small piece of its own, and, in view v0 only, a patch in front of the sphere (a floater)."""
+
+    def render_output(self, view):
+        depth, hit = sphere_depth(view.K.numpy(), view.world_to_camera.numpy(), RADIUS)
+        K, w2c = view.K.numpy(), view.world_to_camera.numpy()
+        u, v = np.meshgrid(np.arange(SIZE) + 0.5, np.arange(SIZE) + 0.5)
+        cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) * depth[0].numpy()[..., None]
+        world_z = ((cam - w2c[:3, 3]) @ w2c[:3, :3])[..., 2] / RADIUS
+        shown = hit[0].numpy() & ~((world_z > -0.95) & (world_z < -0.8))
+        depth = torch.where(torch.from_numpy(shown)[None], depth, torch.zeros_like(depth))
+        if view.name == "v0":
+            patch = torch.from_numpy((np.abs(u - SIZE / 2) < 4) & (np.abs(v - SIZE / 2) < 4))[None]
+            depth = torch.where(patch, depth - 0.6, depth)
+        alpha = (depth > 0).float()
+        return RenderOut(color=torch.full((3, SIZE, SIZE), 0.5), depth=depth, normal=torch.zeros(3, SIZE, SIZE),
+                         alpha=alpha, median_depth=depth)
+
+
+def test_small_pieces_inside_every_mask_survive_and_floaters_do_not():
+    """The cap below the unrendered band is a small piece inside every view's mask: it stays with
+    ``spare_pieces_in_masks`` and goes with the default size-only rule; the floater in front of the sphere in one view sticks
+    out of the other views' silhouettes and goes either way."""
+    from polargs_plugin.service.mesh import MeshSettings, fuse_model
+
+    _, _, Ks, w2cs, masks = sphere_inputs()
+    views = [View(name=f"v{i}", K=K, world_to_camera=w2c, stokes=torch.zeros(3, 3, SIZE, SIZE), mask=mask)
+             for i, (K, w2c, mask) in enumerate(zip(Ks, w2cs, masks))]
+    settings = dict(voxel=0.02, sdf_trunc=0.08, incidence_trunc=1.0)
+    spared = fuse_model(_CutSphere(), views, MeshSettings(spare_pieces_in_masks=True, **settings))
+    dropped = fuse_model(_CutSphere(), views, MeshSettings(**settings))
+    for result in (spared, dropped):
+        radii = np.linalg.norm(np.asarray(result.mesh.vertices), axis=1)
+        assert radii.max() < RADIUS + 0.05  # no floater
+    assert np.asarray(spared.mesh.vertices)[:, 2].min() < -0.97 * RADIUS  # the cap
+    assert np.asarray(dropped.mesh.vertices)[:, 2].min() > -0.9 * RADIUS
+    assert spared.info["spared_pieces_in_masks"] and not dropped.info["spared_pieces_in_masks"]

@@ -89,22 +89,37 @@ def _numpy(x: Tensor | np.ndarray, dtype: type) -> np.ndarray:
     return np.asarray(x, dtype=dtype)
 
 
-def keep_largest_cluster(mesh: o3d.geometry.TriangleMesh, min_fraction: float = 1.0) -> o3d.geometry.TriangleMesh:
+def keep_largest_cluster(
+    mesh: o3d.geometry.TriangleMesh, min_fraction: float = 1.0, spared: np.ndarray | None = None,
+    spared_share: float = 0.9,
+) -> o3d.geometry.TriangleMesh:
     """Drop small connected pieces (in place; returns ``mesh``).
 
     Args:
         mesh: triangle mesh.
         min_fraction: keep every connected component with at least this fraction of the
             largest component's triangles; 1.0 keeps only the largest (one of them on a tie).
+        spared: optional (V,) bool per vertex of ``mesh``: a smaller component stays when at
+            least ``spared_share`` of its triangles' corners are spared vertices (e.g. vertices
+            inside every view's mask).
+        spared_share: that share, in (0, 1].
     """
     if len(mesh.triangles) == 0:
         return mesh
     labels, counts, _ = mesh.cluster_connected_triangles()
-    counts = np.asarray(counts)
+    labels, counts = np.asarray(labels), np.asarray(counts)
     # min_fraction >= 1 keeps exactly one component even when several tie for the largest.
     small = np.ones_like(counts, dtype=bool) if min_fraction >= 1 else counts < min_fraction * counts.max()
     small[int(np.argmax(counts))] = False
-    mesh.remove_triangles_by_mask(small[np.asarray(labels)])
+    if spared is not None and small.any():
+        spared = np.asarray(spared, dtype=bool)
+        if spared.shape != (len(mesh.vertices),):
+            raise ValueError(f"keep_largest_cluster: spared must be ({len(mesh.vertices)},), got {spared.shape}")
+        # share over the components' triangle corners: a vertex counts once per triangle it is in
+        corners = spared[np.asarray(mesh.triangles)].sum(axis=1)
+        share = np.bincount(labels, weights=corners, minlength=len(counts)) / (3.0 * counts)
+        small &= share < spared_share
+    mesh.remove_triangles_by_mask(small[labels])
     mesh.remove_unreferenced_vertices()
     return mesh
 

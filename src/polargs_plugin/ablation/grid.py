@@ -66,6 +66,10 @@ class GridOptions:
         voxel: TSDF voxel (None: the preset's; bundled scenes scale it to 1 / min(W, H)).
         incidence_trunc: cap of the TSDF truncation's 1/cos widening (``polargs mesh --incidence-trunc``;
             1 gives every pixel the preset's truncation).
+        partial_alpha: lowest opacity of the partly transparent pixels fused inside the masks
+            (``polargs mesh --partial-alpha``; 0.5 turns it off).
+        spare_pieces_in_masks: small TSDF pieces inside every view's mask stay (``polargs mesh
+            --spare-pieces-in-masks``; off by default).
         eval_samples: points sampled per mesh for Chamfer.
         cull: cull predicted points to the object region before Chamfer.
         threads: torch threads of each run.
@@ -88,6 +92,8 @@ class GridOptions:
     mesh_preset: str = "synthetic"
     voxel: float | None = None
     incidence_trunc: float = MeshSettings.incidence_trunc
+    partial_alpha: float = MeshSettings.partial_alpha
+    spare_pieces_in_masks: bool = MeshSettings.spare_pieces_in_masks
     eval_samples: int = 1_000_000
     cull: bool = True
     threads: int = 1
@@ -134,6 +140,10 @@ def _mesh_settings(options: GridOptions, scene: SceneSpec) -> dict[str, Any]:
     if options.incidence_trunc != MeshSettings.incidence_trunc:
         # only when set: the cells of grids from before the option keep their fingerprints (and resume)
         mesh["incidence_trunc"] = options.incidence_trunc
+    if options.partial_alpha != MeshSettings.partial_alpha:
+        mesh["partial_alpha"] = options.partial_alpha
+    if options.spare_pieces_in_masks != MeshSettings.spare_pieces_in_masks:
+        mesh["spare_pieces_in_masks"] = options.spare_pieces_in_masks
     return mesh
 
 

@@ -190,7 +190,9 @@ def _mesh(cell: Cell, trainer, views: list, tmp: Path) -> None:
                             sdf_trunc=cell.mesh.get("sdf_trunc"), depth_trunc=cell.mesh.get("depth_trunc"),
                             alpha_threshold=cell.mesh.get("alpha_threshold", 0.5),
                             min_cluster=cell.mesh.get("min_cluster", 0.05),
-                            incidence_trunc=cell.mesh.get("incidence_trunc", MeshSettings.incidence_trunc))
+                            incidence_trunc=cell.mesh.get("incidence_trunc", MeshSettings.incidence_trunc),
+                            partial_alpha=cell.mesh.get("partial_alpha", MeshSettings.partial_alpha),
+                            spare_pieces_in_masks=cell.mesh.get("spare_pieces_in_masks", MeshSettings.spare_pieces_in_masks))
     result = fuse_model(_trained_model(trainer), views, settings, source=str(_published(tmp, tmp, cell)))
     write_mesh_result(result, tmp / MESH_NAME)
     canonical_mesh_order(tmp / MESH_NAME)

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from polargs_plugin.ablation.variants import DESCRIPTIONS, PRESETS, VARIANTS
-from polargs_plugin.cli.argtypes import factor_at_least_one, image_size, non_negative_int, positive_float, positive_int
+from polargs_plugin.cli.argtypes import factor_at_least_one, image_size, non_negative_int, positive_float, positive_int, unit_fraction
 from polargs_plugin.cli.common import add_reader_options, command_line_of, on_stop_signals, reader_options
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.mesh import MeshSettings
@@ -100,6 +100,11 @@ def add_run_options(p: argparse.ArgumentParser, default_factor_help: str = "1/6:
     p.add_argument("--incidence-trunc", type=factor_at_least_one, default=MeshSettings.incidence_trunc, metavar="FACTOR",
                    help="TSDF truncation widened by 1/cos of each pixel's incidence, up to FACTOR "
                    f"(polargs mesh --incidence-trunc; default {MeshSettings.incidence_trunc:g}, 1 disables)")
+    p.add_argument("--partial-alpha", type=unit_fraction, default=MeshSettings.partial_alpha, metavar="ALPHA",
+                   help="TSDF fusion of the partly transparent pixels inside the masks, opacity from ALPHA to 0.5 "
+                   f"(polargs mesh --partial-alpha; default {MeshSettings.partial_alpha:g}, 0.5 disables)")
+    p.add_argument("--spare-pieces-in-masks", action="store_true",
+                   help="TSDF: keep the small pieces inside every view's mask (polargs mesh --spare-pieces-in-masks)")
     p.add_argument("--eval-samples", type=positive_int, default=1_000_000, metavar="N", help="points sampled per mesh for Chamfer (default 1e6)")
     p.add_argument("--no-cull", action="store_true", help="do not cull predicted points to the view masks before Chamfer")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
@@ -203,6 +208,7 @@ def grid_options(args: argparse.Namespace) -> "GridOptions":
         train_overrides=parse_assignments(args.train_set, "--train-set"),
         polar_overrides=parse_assignments(args.polar_set, "--polar-set"),
         mesh_preset=args.mesh_preset, voxel=args.voxel, incidence_trunc=args.incidence_trunc,
+        partial_alpha=args.partial_alpha, spare_pieces_in_masks=args.spare_pieces_in_masks,
         eval_samples=args.eval_samples, cull=not args.no_cull, threads=args.threads_per_run, device=args.device,
         checkpoint_every=getattr(args, "checkpoint_every", None),
         reader=reader_options(args), command=command_line_of(args, args.command),
@@ -378,6 +384,7 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
                                  ("--init", args.init, "hull"), ("--views", args.views, None), ("--size", size, None),
                                  ("--mesh-preset", args.mesh_preset, "synthetic"), ("--voxel", args.voxel, None),
                                  ("--incidence-trunc", args.incidence_trunc, MeshSettings.incidence_trunc),
+                                 ("--partial-alpha", args.partial_alpha, MeshSettings.partial_alpha),
                                  ("--eval-samples", args.eval_samples, 1_000_000), ("--threads-per-run", args.threads_per_run, 1)):
         if value != default:
             parts += [flag, str(value)]
@@ -389,6 +396,8 @@ def command_line(name: str, args: argparse.Namespace, extra: list[str]) -> str:
         parts += ["--polar-set", item]
     if args.no_cull:
         parts.append("--no-cull")
+    if args.spare_pieces_in_masks:
+        parts.append("--spare-pieces-in-masks")
     reader = reader_options(args).to_dict()
     if "fmt" in reader:
         parts += ["--format", reader["fmt"]]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["image_size", "positive_int", "non_negative_int", "positive_float", "factor_at_least_one"]
+__all__ = ["image_size", "positive_int", "non_negative_int", "positive_float", "factor_at_least_one", "unit_fraction"]
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -58,4 +58,15 @@ def factor_at_least_one(text: str) -> float:
     value = positive_float(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return value
+
+
+def unit_fraction(text: str) -> float:
+    """A number in [0, 1] (an opacity, a share)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= value <= 1.0:  # NaN too
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
     return value

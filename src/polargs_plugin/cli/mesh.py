@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polargs_plugin.cli.argtypes import factor_at_least_one
+from polargs_plugin.cli.argtypes import factor_at_least_one, unit_fraction
 from polargs_plugin.io import PolarInputError
 from polargs_plugin.service.mesh import MeshSettings, mesh_run
 from polargs_plugin.service.runs import MESH_NAME, load_run
@@ -42,11 +42,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--depth-trunc", type=float, help="ignore depths beyond this, overrides the preset")
     parser.add_argument("--depth", choices=("median", "expected"), default="median",
                         help="rendered depth to fuse: median (transmittance 0.5 crossing, default) or alpha-normalised expected depth")
-    parser.add_argument("--alpha-threshold", type=float, default=0.5, help="ignore pixels with opacity below this (default 0.5; 0 disables)")
+    parser.add_argument("--alpha-threshold", type=unit_fraction, default=MeshSettings.alpha_threshold,
+                        help=f"ignore pixels with opacity below this (default {MeshSettings.alpha_threshold:g}; 0 disables), "
+                        "except the partly transparent ones inside the masks (--partial-alpha)")
+    parser.add_argument("--partial-alpha", type=unit_fraction, default=MeshSettings.partial_alpha, metavar="ALPHA",
+                        help="inside the masks, fuse the expected depth of pixels with opacity from ALPHA up to "
+                        f"--alpha-threshold (default {MeshSettings.partial_alpha:g}; --alpha-threshold's value disables): "
+                        "keeps the surface that views see only at grazing angles")
     parser.add_argument("--no-masks", action="store_true", help="do not restrict fusion to the views' object masks")
     parser.add_argument("--min-cluster", type=float, default=0.05, metavar="FRACTION",
                         help="drop connected pieces with fewer triangles than FRACTION of the largest "
                         "(default 0.05; 1 keeps only the largest, 0 keeps all)")
+    parser.add_argument("--spare-pieces-in-masks", action="store_true",
+                        help="keep the small pieces of --min-cluster that lie inside every view's mask "
+                        "(a floater sticks out of some silhouette); default: drop by size alone")
     parser.add_argument("--incidence-trunc", type=factor_at_least_one, default=MeshSettings.incidence_trunc, metavar="FACTOR",
                         help="widen each pixel's SDF truncation by 1/cos of its incidence angle, up to FACTOR "
                         f"(default {MeshSettings.incidence_trunc:g}; 1 disables): closes holes where views see "
@@ -61,8 +70,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def settings_from_args(args: argparse.Namespace) -> MeshSettings:
     """The :class:`MeshSettings` of parsed ``polargs mesh`` options."""
     return MeshSettings(preset=args.preset, voxel=args.voxel, sdf_trunc=args.sdf_trunc, depth_trunc=args.depth_trunc,
-                        depth=args.depth, alpha_threshold=args.alpha_threshold, masks=not args.no_masks,
-                        min_cluster=args.min_cluster, incidence_trunc=args.incidence_trunc)
+                        depth=args.depth, alpha_threshold=args.alpha_threshold, partial_alpha=args.partial_alpha,
+                        masks=not args.no_masks,
+                        min_cluster=args.min_cluster, spare_pieces_in_masks=args.spare_pieces_in_masks,
+                        incidence_trunc=args.incidence_trunc)
 
 
 def run(args: argparse.Namespace) -> int:
