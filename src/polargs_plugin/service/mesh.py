@@ -56,7 +56,7 @@ class MeshSettings:
             more than a tenth of it lies outside some view's mask (dilated by one pixel); a piece
             inside every mask stays (default False: pieces are dropped by size alone; on the
             bundled scenes sparing them raised the Chamfer by 5-7 %, on the family's development
-            seeds it lowered the grazing class's completeness by a third). A floater sticks
+            seeds it lowered the grazing class's completeness distance by a third). A floater sticks
             out of the silhouettes that other views see; a piece of the surface that a hole has
             cut off from the rest, as often where views see it only at grazing angles, does not
             (docs/evaluation.md).
@@ -158,10 +158,9 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
     Raises:
         PolarInputError: bad TSDF settings, no median depth for ``depth="median"``, or an empty mesh.
     """
+    import numpy as np
     import torch
     from tqdm import tqdm
-
-    import numpy as np
 
     from polargs_plugin.densify.filters import incidence_cosine
     from polargs_plugin.mesh import keep_largest_cluster, tsdf_fuse
@@ -175,13 +174,14 @@ def fuse_model(model: "GaussianModel", views: Sequence[View], settings: MeshSett
             out = model.render_output(view)
             if settings.depth == "median" and out.median_depth is None:
                 raise PolarInputError(source or "mesh", "the renderer returns no median depth; use --depth expected")
-            depth = fused_depth(out, view.mask if settings.masks else None, settings)
+            mask = view.mask if settings.masks else None
+            depth = fused_depth(out, mask, settings)
             depths.append(depth.cpu())
             if settings.incidence_trunc > 1.0:
                 incidences.append(incidence_cosine(depth, out.normal, view.K, view.world_to_camera,
                                                    view.world_to_camera).cpu())
             colors.append(out.color.clamp(0, 1).cpu())
-            masks.append(view.mask if settings.masks else None)
+            masks.append(mask)
             Ks.append(view.K)
             w2cs.append(view.world_to_camera)
     threshold = settings.alpha_threshold if settings.alpha_threshold > 0 else None
